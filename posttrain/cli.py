@@ -1,0 +1,216 @@
+"""The `posttrain` command line: the only place that maps names (stages, recipes) to code.
+
+    posttrain recipes                                   list shipped recipes
+    posttrain sft  --recipe tiny-summarize [k=v ...]     run a stage (builds what it needs first)
+    posttrain eval --recipe tiny-summarize [model=PATH] [reference=PATH]
+    posttrain <stage> --help                            the stage's config fields with their docs
+    posttrain verifiers                                 installed verifiers
+    posttrain verify audit NAME | score NAME FILE.jsonl verifier audit / scoring
+
+Stages chain through the run directory `runs/<recipe>/<stage>/`: a stage that needs an
+earlier stage's output (SFT needs a base model; eval needs the SFT model) uses it when it
+is there and otherwise builds it first, saying so. One command on a fresh machine runs the
+whole chain.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from posttrain.config import ConfigError, Resolved, describe_fields, list_recipes, resolve, SHARED_SECTIONS
+
+
+# ----------------------------------------------------------------------------- eval stage config
+@dataclass
+class EvalConfig:
+    model: str = ""
+    """Model directory to evaluate; empty: the recipe's SFT model (trained first if missing)."""
+    reference: str = ""
+    """Model directory to compute the gold-preference win-rate against; empty: the untrained base model."""
+    rows: int = 200
+    """Held-out prompts to evaluate."""
+    max_new_tokens: int = 64
+    """Generation budget per completion."""
+
+
+# ----------------------------------------------------------------------------- stages
+def _sft_stage():
+    from posttrain.trainers import sft
+
+    return sft.SFTConfig, _run_sft
+
+
+@dataclass
+class Stage:
+    name: str
+    help: str
+    load: Callable[[], tuple[type, Callable[[Resolved], Any]]] = field(repr=False)
+
+
+def _run_sft(res: Resolved) -> Path:
+    from posttrain.trainers import sft
+
+    base = ensure_base(res)
+    return sft.train(res, base)
+
+
+def _run_eval(res: Resolved) -> dict:
+    from posttrain import evaluation, loop, tasks
+    from posttrain.models import load_model, load_tokenizer
+
+    cfg: EvalConfig = res.stage_cfg
+    rows = tasks.load_split(res.task, "eval")[: cfg.rows]
+    model_dir = Path(cfg.model) if cfg.model else ensure_stage(res, "sft")
+    ref_dir = Path(cfg.reference) if cfg.reference else ensure_base(res)
+    tok = load_tokenizer(model_dir)
+    model = load_model(model_dir)
+    ref_tok = load_tokenizer(ref_dir)
+    ref = load_model(ref_dir)
+    print(f"[eval] model {model_dir} vs reference {ref_dir} on {len(rows)} held-out prompts of {res.task.name}")
+    m = evaluation.evaluate_model(res.task.name, model, tok, rows, max_new_tokens=cfg.max_new_tokens)
+    r = evaluation.evaluate_model(res.task.name, ref, ref_tok, rows, max_new_tokens=cfg.max_new_tokens)
+    m["win_rate_vs_reference"] = evaluation.win_rate(res.task.name, rows, m["_completions"], r["_completions"])
+    r["win_rate_vs_reference"] = 0.5
+    print(evaluation.format_comparison({"model": m, "reference": r}, res.task.name))
+    out_dir = res.stage_dir()
+    loop.write_json(out_dir / "eval.json", {"model": str(model_dir), "reference": str(ref_dir),
+                                            "metrics": {k: v for k, v in m.items() if not k.startswith("_")},
+                                            "reference_metrics": {k: v for k, v in r.items() if not k.startswith("_")}})
+    return m
+
+
+STAGES: dict[str, Stage] = {
+    "sft": Stage("sft", "supervised fine-tuning (builds the base model first if needed)", _sft_stage),
+    "eval": Stage("eval", "gold metrics and win-rate of a model on held-out prompts",
+                  lambda: (EvalConfig, _run_eval)),
+}
+
+
+# ----------------------------------------------------------------------------- chaining
+def ensure_base(res: Resolved) -> Path:
+    """The base model directory: a local HF dir as given, or a preset built from scratch once per recipe."""
+    from posttrain import loop, tasks
+    from posttrain.models import PRESETS, ModelError, bootstrap, count_parameters, is_model_dir
+
+    spec = res.model.path
+    if spec not in PRESETS:
+        if not is_model_dir(spec):
+            what = "does not exist" if not Path(spec).exists() else "has no config.json (not a Hugging Face model directory)"
+            raise ModelError(f"model.path {spec!r} {what}; give a local Hugging Face model directory or a preset "
+                             f"name ({', '.join(PRESETS)})")
+        return Path(spec)
+    base = res.stage_dir("base")
+    want = {"preset": spec, "vocab_size": res.model.vocab_size, "seed": res.model.seed, "task": res.task.name,
+            "task_seed": res.task.seed, "train_file": res.task.train_file, "max_length": res.model.max_length}
+    stamp = base / "posttrain_base.json"
+    if is_model_dir(base) and stamp.is_file():
+        import json
+
+        if json.loads(stamp.read_text()) == want:
+            return base
+        print(f"[base] {base} was built with other settings; rebuilding")
+    texts = tasks.tokenizer_corpus(res.task)
+    print(f"[base] building the {spec!r} model from scratch: tokenizer trained on {len(texts)} task texts -> {base}")
+    model, tok = bootstrap(spec, texts, base, vocab_size=res.model.vocab_size, seed=res.model.seed,
+                           max_length=res.model.max_length)
+    loop.write_json(stamp, want)
+    print(f"[base] {count_parameters(model) / 1e6:.2f}M parameters, vocabulary {len(tok)}")
+    return base
+
+
+def ensure_stage(res: Resolved, stage: str) -> Path:
+    """`runs/<recipe>/<stage>/final`, running that stage first (with the recipe's settings) if missing."""
+    from posttrain.models import is_model_dir
+
+    final = res.stage_dir(stage) / "final"
+    if is_model_dir(final):
+        return final
+    print(f"[posttrain] {stage} model not found at {final}; running `posttrain {stage} --recipe {res.recipe}` first")
+    cfg_cls, run = STAGES[stage].load()
+    run(res.for_stage(stage, cfg_cls))
+    return final
+
+
+# ----------------------------------------------------------------------------- commands
+def _print_help(stage: str, cfg_cls: type) -> None:
+    print(f"posttrain {stage} --recipe NAME|PATH [key=value ...]\n\n{STAGES[stage].help}\n")
+    print(f"Fields of {stage}: (set as key=value or {stage}.key=value)")
+    rows = describe_fields(cfg_cls)
+    for sec, cls in SHARED_SECTIONS.items():
+        rows_sec = describe_fields(cls, sec + ".")
+        rows += rows_sec
+    w = max(len(r[0]) for r in rows) + 2
+    for key, tp, default, doc in rows:
+        print(f"  {key:<{w}}{doc}  [{tp}, default {default}]")
+
+
+def _quiet_libraries() -> None:
+    os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+    try:
+        import transformers
+
+        transformers.utils.logging.set_verbosity_error()
+        transformers.utils.logging.disable_progress_bar()
+    except Exception:  # pragma: no cover - transformers always present in an install
+        pass
+    try:
+        import datasets
+
+        datasets.disable_progress_bars()
+        datasets.utils.logging.set_verbosity_error()
+    except Exception:  # pragma: no cover
+        pass
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    top = argparse.ArgumentParser(prog="posttrain", description="LLM post-training on a laptop CPU and beyond.",
+                                  epilog="stages: " + ", ".join(f"{k} ({v.help})" for k, v in STAGES.items()))
+    top.add_argument("command", help="recipes | verifiers | verify | " + " | ".join(STAGES))
+    if not argv or argv[0] in ("-h", "--help"):
+        top.print_help()
+        return 0
+    cmd, rest = argv[0], argv[1:]
+    try:
+        if cmd == "recipes":
+            for name, desc in list_recipes():
+                print(f"{name:<20} {desc}")
+            return 0
+        if cmd in ("verifiers", "verify"):
+            from verifiers.cli import main as vmain
+
+            return vmain(["list"] + rest if cmd == "verifiers" else rest)
+        if cmd not in STAGES:
+            raise ConfigError(f"unknown command {cmd!r}; choose one of: recipes, verifiers, verify, {', '.join(STAGES)}")
+        cfg_cls, run = STAGES[cmd].load()
+        if "-h" in rest or "--help" in rest:
+            _print_help(cmd, cfg_cls)
+            return 0
+        p = argparse.ArgumentParser(prog=f"posttrain {cmd}")
+        p.add_argument("--recipe", required=True, help="recipe name (posttrain recipes) or path to a YAML file")
+        p.add_argument("overrides", nargs="*", help="key=value config overrides")
+        args = p.parse_args(rest)
+        res = resolve(args.recipe, cmd, cfg_cls, args.overrides)
+        _quiet_libraries()
+        run(res)
+        return 0
+    except Exception as e:  # user errors: one line, no traceback
+        from posttrain.data import DataError
+        from posttrain.loop import TrainingError
+        from posttrain.models import ModelError
+
+        if isinstance(e, (ConfigError, DataError, ModelError)):
+            print(f"posttrain: error: {e}", file=sys.stderr)
+            return 2
+        if isinstance(e, TrainingError):
+            print(f"posttrain: training stopped: {e}", file=sys.stderr)
+            return 1
+        raise
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

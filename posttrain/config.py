@@ -1,0 +1,341 @@
+"""Typed configs, recipes and strict merging.
+
+Precedence: dataclass defaults < recipe YAML < `key=value` on the command line.
+A recipe has shared sections (`task:`, `model:`, `run:`) and one section per stage
+(`sft:`, `rm:`, `dpo:`, `ppo:`, `grpo:`, `eval:`). An unknown key or a value of the
+wrong type is a `ConfigError` naming the key and the valid ones, raised before any
+model loads.
+
+Command-line keys: `lr=1e-3` sets a field of the stage being run; dotted keys reach
+any section (`model.preset=small`, `task.n_train=500`, `sft.lr=1e-3`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A user-caused config problem: one line naming the key and how to fix it."""
+
+
+# ----------------------------------------------------------------------------- shared sections
+@dataclass
+class TaskConfig:
+    name: str = "tiny-summarize"
+    """Task generator (posttrain/tasks): tiny-summarize, ..."""
+    n_train: int = 4000
+    """Number of generated training examples."""
+    n_eval: int = 200
+    """Number of generated held-out examples."""
+    seed: int = 0
+    """Seed of the task generator (train and eval streams are derived from it)."""
+    train_file: str | None = None
+    """Optional JSONL/Parquet/dataset dir replacing the generated training set."""
+    eval_file: str | None = None
+    """Optional JSONL/Parquet/dataset dir replacing the generated held-out set."""
+
+
+@dataclass
+class ModelConfig:
+    path: str = "tiny"
+    """A preset (tiny, small, base) built from scratch, or a local Hugging Face model directory."""
+    vocab_size: int = 1024
+    """Tokenizer vocabulary size when a preset is built from scratch."""
+    max_length: int = 256
+    """Longest prompt + completion in tokens; longer rows are dropped with a count."""
+    seed: int = 0
+    """Seed of the random init of a preset."""
+
+
+@dataclass
+class RunConfig:
+    output_dir: str = "runs"
+    """Root of run directories: <output_dir>/<recipe>/<stage>/."""
+    threads: int = 0
+    """torch CPU threads (0: leave torch's default)."""
+    quiet: bool = False
+    """No progress bar; metrics still go to metrics.jsonl."""
+
+
+SHARED_SECTIONS: dict[str, type] = {"task": TaskConfig, "model": ModelConfig, "run": RunConfig}
+
+
+# ----------------------------------------------------------------------------- type checking
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(tp))
+    if origin in (list, tuple):
+        args = typing.get_args(tp)
+        return f"list of {_type_name(args[0])}" if args else "list"
+    if origin is dict:
+        return "mapping"
+    if tp is type(None):
+        return "null"
+    return getattr(tp, "__name__", str(tp))
+
+
+def coerce(value: Any, tp: Any, key: str) -> Any:
+    """Check `value` against the annotation `tp`; return it (ints are accepted for floats)."""
+    origin = typing.get_origin(tp)
+    if tp is Any:
+        return value
+    if origin is Literal:
+        if value in typing.get_args(tp):
+            return value
+        raise ConfigError(f"config key {key!r}: {value!r} is not {_type_name(tp)}")
+    if origin in (typing.Union, types.UnionType):
+        for arg in typing.get_args(tp):
+            try:
+                return coerce(value, arg, key)
+            except ConfigError:
+                continue
+        raise ConfigError(f"config key {key!r}: expected {_type_name(tp)}, got {value!r}")
+    if tp is type(None):
+        if value is None:
+            return None
+        raise ConfigError(f"config key {key!r}: expected null, got {value!r}")
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"config key {key!r}: expected {_type_name(tp)}, got {value!r}")
+        args = typing.get_args(tp)
+        inner = args[0] if args else Any
+        return [coerce(v, inner, f"{key}[{i}]") for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"config key {key!r}: expected a mapping, got {value!r}")
+        return dict(value)
+    if is_dataclass(tp):
+        raise ConfigError(f"config key {key!r} is a section; set its fields as {key}.FIELD=VALUE")
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+    elif tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    elif tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+    elif tp is str:
+        if isinstance(value, str):
+            return value
+    else:
+        raise TypeError(f"unsupported config annotation {tp!r} for {key!r}")  # our bug
+    raise ConfigError(f"config key {key!r}: expected {_type_name(tp)}, got {value!r} ({type(value).__name__})")
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """The one-line docstrings under each dataclass field (read from the source)."""
+    import ast
+    import inspect
+    import textwrap
+
+    try:
+        src = textwrap.dedent(inspect.getsource(cls))
+    except (OSError, TypeError):
+        return {}
+    docs: dict[str, str] = {}
+    body = ast.parse(src).body[0].body  # type: ignore[attr-defined]
+    for a, b in zip(body, body[1:]):
+        if isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name) and isinstance(b, ast.Expr) \
+                and isinstance(b.value, ast.Constant) and isinstance(b.value.value, str):
+            docs[a.target.id] = b.value.value.strip()
+    return docs
+
+
+def merge_into(obj: Any, updates: dict[str, Any], prefix: str) -> None:
+    """Apply a mapping of updates to a dataclass instance, strictly."""
+    if not isinstance(updates, dict):
+        raise ConfigError(f"config section {prefix!r} must be a mapping, got {updates!r}")
+    hints = _hints(type(obj))
+    for key, value in updates.items():
+        full = f"{prefix}.{key}" if prefix else str(key)
+        if key not in hints:
+            valid = ", ".join(f.name for f in fields(obj))
+            raise ConfigError(f"unknown config key {full!r}; valid keys in {prefix or 'config'}: {valid}")
+        tp = hints[key]
+        if is_dataclass(tp):
+            merge_into(getattr(obj, key), value, full)
+        else:
+            setattr(obj, key, coerce(value, tp, full))
+
+
+def to_dict(obj: Any) -> dict[str, Any]:
+    return dataclasses.asdict(obj)
+
+
+# ----------------------------------------------------------------------------- recipes
+def recipes_dir() -> Path:
+    """The shipped recipes: `recipes/` in a source checkout, `posttrain/recipes` when installed."""
+    src = Path(__file__).resolve().parent.parent / "recipes"
+    if src.is_dir() and any(src.glob("*.yaml")):
+        return src
+    from importlib.resources import files
+
+    return Path(str(files("posttrain.recipes")))
+
+
+def list_recipes() -> list[tuple[str, str]]:
+    """(name, one-line description) of each shipped recipe: the first comment line of its file."""
+    out = []
+    for p in sorted(recipes_dir().glob("*.yaml")):
+        desc = ""
+        for line in p.read_text().splitlines():
+            if line.startswith("#"):
+                desc = line.lstrip("# ").strip()
+                break
+        out.append((p.stem, desc))
+    return out
+
+
+def resolve_recipe(name_or_path: str) -> Path:
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") or p.exists():
+        if not p.is_file():
+            raise ConfigError(f"recipe file {name_or_path!r} does not exist")
+        return p
+    cand = recipes_dir() / f"{name_or_path}.yaml"
+    if not cand.is_file():
+        names = ", ".join(n for n, _ in list_recipes())
+        raise ConfigError(f"unknown recipe {name_or_path!r}; shipped recipes: {names} (or give a path to a .yaml file)")
+    return cand
+
+
+def load_recipe(name_or_path: str) -> tuple[str, dict[str, Any]]:
+    """(recipe name, raw mapping) of a recipe name or YAML path."""
+    path = resolve_recipe(name_or_path)
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"recipe {str(path)!r} is not valid YAML: {str(e).splitlines()[0]}") from None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"recipe {str(path)!r} must be a mapping of sections (task:, model:, sft:, ...)")
+    return path.stem, raw
+
+
+def parse_overrides(items: list[str]) -> list[tuple[str, Any]]:
+    out = []
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"command-line override {item!r} must look like key=value (e.g. lr=1e-3 or model.preset=small)")
+        key, text = item.split("=", 1)
+        key = key.strip()
+        if not key:
+            raise ConfigError(f"command-line override {item!r} has an empty key")
+        try:
+            value = yaml.safe_load(text) if text != "" else ""
+        except yaml.YAMLError:
+            value = text
+        # YAML reads 1e-3 as a string (no dot before the exponent); accept it as a number.
+        if isinstance(value, str):
+            try:
+                value = float(value) if any(c in value.lower() for c in ".e") and value.strip() else value
+            except ValueError:
+                pass
+        out.append((key, value))
+    return out
+
+
+@dataclass
+class Resolved:
+    """A resolved config: shared sections plus the stage's own config."""
+
+    recipe: str
+    stage: str
+    task: TaskConfig
+    model: ModelConfig
+    run: RunConfig
+    stage_cfg: Any
+    raw_recipe: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def run_root(self) -> Path:
+        return Path(self.run.output_dir) / self.recipe
+
+    def stage_dir(self, stage: str | None = None) -> Path:
+        return self.run_root / (stage or self.stage)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"recipe": self.recipe, "stage": self.stage, "task": to_dict(self.task), "model": to_dict(self.model),
+                "run": to_dict(self.run), self.stage: to_dict(self.stage_cfg)}
+
+    def for_stage(self, stage: str, stage_cls: type) -> "Resolved":
+        """The config of another stage of the same recipe (used to build a prerequisite stage)."""
+        cfg = stage_cls()
+        if stage in self.raw_recipe and self.raw_recipe[stage] is not None:
+            merge_into(cfg, self.raw_recipe[stage], stage)
+        return Resolved(self.recipe, stage, self.task, self.model, self.run, cfg, self.raw_recipe)
+
+
+def resolve(recipe: str, stage: str, stage_cls: type, overrides: list[str] | None = None) -> Resolved:
+    """Defaults < recipe < overrides, strictly checked."""
+    name, raw = load_recipe(recipe)
+    known = set(SHARED_SECTIONS) | {"sft", "rm", "dpo", "ppo", "grpo", "eval", "prefs", "description"}
+    for key in raw:
+        if key not in known:
+            raise ConfigError(f"unknown recipe section {key!r} in {name}; valid sections: {', '.join(sorted(known))}")
+    shared = {k: cls() for k, cls in SHARED_SECTIONS.items()}
+    for k, obj in shared.items():
+        if raw.get(k) is not None:
+            merge_into(obj, raw[k], k)
+    stage_cfg = stage_cls()
+    if raw.get(stage) is not None:
+        merge_into(stage_cfg, raw[stage], stage)
+    stage_fields = {f.name for f in fields(stage_cfg)}
+    for key, value in parse_overrides(overrides or []):
+        head, _, rest = key.partition(".")
+        if not rest and head in stage_fields:
+            merge_into(stage_cfg, {head: value}, stage)
+        elif head == stage and rest:
+            merge_into(stage_cfg, _nest(rest, value), stage)
+        elif head in shared and rest:
+            merge_into(shared[head], _nest(rest, value), head)
+        elif head == "model" and not rest:
+            merge_into(shared["model"], {"path": value}, "model")  # `model=PATH` sugar
+        else:
+            valid = ", ".join(sorted(stage_fields))
+            raise ConfigError(f"unknown config key {key!r} for stage {stage!r}; valid keys: {valid} "
+                              f"(or dotted: task.*, model.*, run.*, {stage}.*)")
+    return Resolved(name, stage, shared["task"], shared["model"], shared["run"], stage_cfg, raw)
+
+
+def _nest(dotted: str, value: Any) -> dict[str, Any]:
+    head, _, rest = dotted.partition(".")
+    return {head: _nest(rest, value) if rest else value}
+
+
+def save_resolved(res: Resolved, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(yaml.safe_dump(res.to_dict(), sort_keys=False))
+    tmp.replace(path)
+
+
+def describe_fields(cls: type, prefix: str = "") -> list[tuple[str, str, str, str]]:
+    """(key, type, default, doc) for `--help`."""
+    docs = field_docs(cls)
+    hints = _hints(cls)
+    rows = []
+    for f in fields(cls):
+        tp = hints[f.name]
+        key = f"{prefix}{f.name}"
+        if is_dataclass(tp):
+            rows.extend(describe_fields(tp, key + "."))
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else (
+            f.default_factory() if f.default_factory is not dataclasses.MISSING else "")  # type: ignore[misc]
+        rows.append((key, _type_name(tp), repr(default), docs.get(f.name, "")))
+    return rows

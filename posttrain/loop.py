@@ -1,0 +1,332 @@
+"""Pieces of a training loop on accelerate: setup, optimizer step, metrics, atomic checkpoints, resume.
+
+Every trainer composes these; none of them owns the loop. The same code runs on one CPU
+process and under `accelerate launch` (DDP/FSDP/DeepSpeed): the Accelerator decides.
+
+- `setup(seed, threads)`: seeds python/numpy/torch, creates the `Accelerator`.
+- `build_optimizer` / `build_scheduler`: AdamW (no weight decay on norms, biases and
+  embeddings), linear warmup then cosine / linear / constant.
+- `optimizer_step`: gradient accumulation over micro-batches (no gradient sync on all but
+  the last under DDP), clipping, a non-finite-loss guard, optimizer + scheduler step.
+- `batch_indices`: the data order as a pure function of (seed, step), so resuming at a
+  step reproduces the exact batches without saving a sampler.
+- `MetricsLog`: one JSON line per logged step in metrics.jsonl plus a console line.
+- `Checkpointer`: `checkpoints/step-NNNNNN/` written to a temp dir then renamed (atomic);
+  it holds model, optimizer, scheduler, RNG states and the data position; `resume` loads
+  the newest complete one.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import random
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+import torch
+
+
+class TrainingError(RuntimeError):
+    """A run cannot go on (non-finite loss, ...); the last good checkpoint is intact."""
+
+
+# ----------------------------------------------------------------------------- setup
+def tune_malloc() -> None:
+    """Raise glibc's mmap/trim thresholds: measured here to speed up CPU forward passes.
+
+    Without it glibc returns freed activation buffers to the OS and page-faults them back
+    on the next step. No-op off glibc.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+        libc.mallopt(M_MMAP_THRESHOLD, 256 * 1024 * 1024)
+        libc.mallopt(M_TRIM_THRESHOLD, 1024 * 1024 * 1024)
+    except (OSError, AttributeError):
+        pass
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def setup(seed: int, threads: int = 0, mixed_precision: str = "no"):
+    """Seed everything and return an `accelerate.Accelerator` (CPU unless launched on GPUs)."""
+    from accelerate import Accelerator
+
+    tune_malloc()
+    if threads > 0:
+        torch.set_num_threads(threads)
+    accelerator = Accelerator(mixed_precision=mixed_precision)
+    seed_everything(seed)
+    return accelerator
+
+
+# ----------------------------------------------------------------------------- optimisation
+def build_optimizer(model: torch.nn.Module, lr: float, weight_decay: float = 0.0,
+                    betas: tuple[float, float] = (0.9, 0.95), eps: float = 1e-8) -> torch.optim.Optimizer:
+    decay, no_decay = [], []
+    for name, p in model.named_parameters():
+        if not p.requires_grad:
+            continue
+        (decay if p.ndim >= 2 and "embed" not in name else no_decay).append(p)
+    groups = [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+    return torch.optim.AdamW([g for g in groups if g["params"]], lr=lr, betas=betas, eps=eps)
+
+
+def lr_factor(step: int, warmup_steps: int, total_steps: int, schedule: str, min_lr_ratio: float) -> float:
+    """Multiplier of the peak learning rate at `step` (0-based)."""
+    if warmup_steps > 0 and step < warmup_steps:
+        return (step + 1) / warmup_steps
+    if schedule == "constant":
+        return 1.0
+    progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
+    if schedule == "linear":
+        return min_lr_ratio + (1 - min_lr_ratio) * (1 - progress)
+    if schedule == "cosine":
+        return min_lr_ratio + (1 - min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+    raise ValueError(f"unknown schedule {schedule!r}")
+
+
+def build_scheduler(optimizer, warmup_steps: int, total_steps: int, schedule: str = "cosine",
+                    min_lr_ratio: float = 0.1):
+    return torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda s: lr_factor(s, warmup_steps, total_steps, schedule, min_lr_ratio))
+
+
+def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list[Any],
+                   loss_fn: Callable[[Any], tuple[torch.Tensor, dict[str, float]]],
+                   max_grad_norm: float, step: int) -> dict[str, float]:
+    """One optimizer step over `micro_batches` (gradient accumulation).
+
+    `loss_fn(micro_batch)` returns (loss, metrics) where the loss is already scaled to its
+    share of the whole batch (e.g. summed token losses / tokens in the batch), so the
+    accumulated gradient is that of the batch loss. Metrics are summed over micro-batches
+    when their name ends in `_sum`, else averaged.
+    """
+    model.train()
+    totals: dict[str, float] = {}
+    loss_total = 0.0
+    for i, mb in enumerate(micro_batches):
+        last = i == len(micro_batches) - 1
+        ctx = accelerator.no_sync(model) if (not last and accelerator.num_processes > 1) else _null()
+        with ctx:
+            loss, metrics = loss_fn(mb)
+            if not torch.isfinite(loss):
+                optimizer.zero_grad(set_to_none=True)
+                raise TrainingError(f"non-finite loss ({loss.item()}) at step {step}; stopping. "
+                                    "The last good checkpoint is intact: lower the learning rate and resume.")
+            accelerator.backward(loss)
+        loss_total += loss.item()
+        for k, v in metrics.items():
+            totals[k] = totals.get(k, 0.0) + float(v)
+    grad_norm = float("nan")
+    if max_grad_norm > 0:
+        grad_norm = float(accelerator.clip_grad_norm_(model.parameters(), max_grad_norm))
+        if not math.isfinite(grad_norm):
+            optimizer.zero_grad(set_to_none=True)
+            raise TrainingError(f"non-finite gradient norm at step {step}; stopping. The last good checkpoint is intact.")
+    optimizer.step()
+    scheduler.step()
+    optimizer.zero_grad(set_to_none=True)
+    n = len(micro_batches)
+    out = {k: (v if k.endswith("_sum") else v / n) for k, v in totals.items()}
+    out.update(loss=loss_total, grad_norm=grad_norm, lr=scheduler.get_last_lr()[0])
+    return out
+
+
+class _null:
+    def __enter__(self):
+        return None
+
+    def __exit__(self, *a):
+        return False
+
+
+# ----------------------------------------------------------------------------- data order
+def batch_indices(n: int, batch_size: int, seed: int, step: int, rank: int = 0, world: int = 1) -> list[int]:
+    """Indices of the global batch at `step` (this process's shard of it).
+
+    Epochs are fresh seeded permutations; the last incomplete batch of an epoch is dropped.
+    A pure function of its arguments: resuming at `step` needs no sampler state.
+    """
+    if n < batch_size:
+        raise ValueError(f"dataset has {n} rows, fewer than batch_size={batch_size}")
+    per_epoch = n // batch_size
+    epoch, i = divmod(step, per_epoch)
+    perm = np.random.default_rng([seed, epoch]).permutation(n)
+    idx = perm[i * batch_size:(i + 1) * batch_size]
+    return [int(j) for j in idx[rank::world]]
+
+
+def chunks(seq: list[Any], size: int) -> list[list[Any]]:
+    return [seq[i:i + size] for i in range(0, len(seq), max(1, size))]
+
+
+# ----------------------------------------------------------------------------- metrics
+class MetricsLog:
+    """metrics.jsonl (one JSON object per logged step) and a console progress line."""
+
+    def __init__(self, path: Path, total_steps: int, enabled: bool = True, quiet: bool = False, prefix: str = ""):
+        self.path = Path(path)
+        self.total = total_steps
+        self.enabled = enabled
+        self.quiet = quiet
+        self.prefix = prefix
+        self.t0 = time.time()
+        self.start_step = 0
+        if enabled:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+
+    def truncate_after(self, step: int) -> None:
+        """On resume: drop rows logged after the checkpoint's step (they will be redone)."""
+        self.start_step = step
+        if not (self.enabled and self.path.exists()):
+            return
+        keep = []
+        for line in self.path.read_text().splitlines():
+            try:
+                if json.loads(line).get("step", 0) <= step:
+                    keep.append(line)
+            except json.JSONDecodeError:
+                continue  # a torn last line from a killed run
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text("".join(l + "\n" for l in keep))
+        tmp.replace(self.path)
+
+    def log(self, step: int, metrics: dict[str, Any], console: bool = True) -> None:
+        if not self.enabled:
+            return
+        row = {"step": step, "time": round(time.time() - self.t0, 3)}
+        row.update({k: (float(v) if isinstance(v, (int, float, np.floating)) else v) for k, v in metrics.items()})
+        with open(self.path, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        if console and not self.quiet:
+            done = step - self.start_step
+            elapsed = time.time() - self.t0
+            eta = elapsed / max(1, done) * max(0, self.total - step)
+            shown = " ".join(f"{k} {_fmt(v)}" for k, v in metrics.items() if isinstance(v, (int, float)))
+            print(f"{self.prefix}step {step}/{self.total} {shown} | {elapsed:.0f}s elapsed, eta {eta:.0f}s", flush=True)
+
+
+def _fmt(v: float) -> str:
+    if v != v:
+        return "nan"
+    if v == 0 or 1e-3 <= abs(v) < 1e5:
+        return f"{v:.4g}"
+    return f"{v:.3e}"
+
+
+# ----------------------------------------------------------------------------- checkpoints
+def _rng_state() -> dict[str, Any]:
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+
+
+def _set_rng_state(state: dict[str, Any]) -> None:
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+
+
+class Checkpointer:
+    """Atomic checkpoints under `<run_dir>/checkpoints/step-NNNNNN/` (temp dir + rename)."""
+
+    def __init__(self, run_dir: Path, keep: int = 2, accelerator=None):
+        self.dir = Path(run_dir) / "checkpoints"
+        self.keep = keep
+        self.accelerator = accelerator
+
+    @property
+    def is_main(self) -> bool:
+        return self.accelerator is None or self.accelerator.is_main_process
+
+    def save(self, step: int, model, optimizer=None, scheduler=None, data_state: dict | None = None,
+             extra: dict | None = None) -> Path | None:
+        if self.accelerator is not None:
+            self.accelerator.wait_for_everyone()
+        final = self.dir / f"step-{step:06d}"
+        if self.is_main:
+            unwrapped = self.accelerator.unwrap_model(model) if self.accelerator is not None else model
+            state = {
+                "step": step,
+                "model": {k: v.detach().cpu() for k, v in unwrapped.state_dict().items()},
+                "optimizer": optimizer.state_dict() if optimizer is not None else None,
+                "scheduler": scheduler.state_dict() if scheduler is not None else None,
+                "rng": _rng_state(),
+                "data": data_state or {},
+                "extra": extra or {},
+            }
+            self.dir.mkdir(parents=True, exist_ok=True)
+            tmp = self.dir / f".tmp-step-{step:06d}-{os.getpid()}"
+            if tmp.exists():
+                shutil.rmtree(tmp)
+            tmp.mkdir()
+            torch.save(state, tmp / "state.pt")
+            (tmp / "meta.json").write_text(json.dumps({"step": step, "data": data_state or {}}))
+            if final.exists():
+                shutil.rmtree(final)
+            os.replace(tmp, final)  # atomic: a checkpoint dir either exists whole or not at all
+            for old in self.all()[:-self.keep] if self.keep > 0 else []:
+                shutil.rmtree(old, ignore_errors=True)
+        if self.accelerator is not None:
+            self.accelerator.wait_for_everyone()
+        return final
+
+    def all(self) -> list[Path]:
+        if not self.dir.is_dir():
+            return []
+        return sorted(p for p in self.dir.glob("step-*") if (p / "state.pt").is_file())
+
+    def latest(self) -> Path | None:
+        ckpts = self.all()
+        return ckpts[-1] if ckpts else None
+
+    def load(self, path: Path, model, optimizer=None, scheduler=None) -> dict[str, Any]:
+        """Restore states in place; returns {'step', 'data', 'extra'}."""
+        state = torch.load(Path(path) / "state.pt", map_location="cpu", weights_only=False)
+        target = self.accelerator.unwrap_model(model) if self.accelerator is not None else model
+        target.load_state_dict(state["model"])
+        if optimizer is not None and state["optimizer"] is not None:
+            optimizer.load_state_dict(state["optimizer"])
+        if scheduler is not None and state["scheduler"] is not None:
+            scheduler.load_state_dict(state["scheduler"])
+        _set_rng_state(state["rng"])
+        return {"step": state["step"], "data": state["data"], "extra": state["extra"]}
+
+
+def prepare_run_dir(run_dir: Path, resume: bool, log: Callable[[str], None] = print) -> None:
+    """Make the run dir. Starting fresh over an earlier run keeps it as `<dir>.prev` (nothing is lost)."""
+    run_dir = Path(run_dir)
+    if run_dir.exists() and not resume and any(run_dir.iterdir()):
+        prev = run_dir.with_name(run_dir.name + ".prev")
+        if prev.exists():
+            shutil.rmtree(prev)
+        run_dir.rename(prev)
+        log(f"[posttrain] an earlier run in {run_dir} was moved to {prev} (pass resume=true to continue it instead)")
+    run_dir.mkdir(parents=True, exist_ok=True)
+
+
+def write_json(path: Path, obj: Any) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2, default=str))
+    tmp.replace(path)
+
+
+def iter_jsonl(path: Path) -> Iterable[dict]:
+    with open(path) as f:
+        for line in f:
+            if line.strip():
+                yield json.loads(line)

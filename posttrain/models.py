@@ -1,0 +1,165 @@
+"""Tiny Llama-family models built from nothing, a tokenizer trained locally, and any local HF model.
+
+Nothing here downloads anything. A preset is a `transformers.LlamaConfig` with random
+init; the tokenizer is a byte-level BPE trained with `tokenizers` on the task's own
+corpus and wrapped as a `PreTrainedTokenizerFast` with pad and eos tokens. Both are
+saved with `save_pretrained` and load back with `AutoModelForCausalLM` / `AutoTokenizer`.
+
+CPU runs use fp32: this class of CPU has no native bf16 (about 100x slower).
+
+Presets (parameter counts with the default 1024-token vocabulary, tied embeddings):
+- `tiny`  : d=128, 4 layers, 4 heads, MLP 512   -> ~1.2M parameters (tests, default recipes)
+- `small` : d=384, 6 layers, 6 heads, MLP 1024  -> ~11M parameters (the seed's E6 asks 10-100M)
+- `base`  : d=512, 8 layers, 8 heads, MLP 1408  -> ~26M parameters
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Iterable
+
+import torch
+
+PAD_TOKEN = "<|pad|>"
+EOS_TOKEN = "<|eos|>"
+BOS_TOKEN = "<|bos|>"
+
+PRESETS: dict[str, dict] = {
+    "tiny": dict(hidden_size=128, intermediate_size=512, num_hidden_layers=4, num_attention_heads=4,
+                 num_key_value_heads=4, max_position_embeddings=512),
+    "small": dict(hidden_size=384, intermediate_size=1024, num_hidden_layers=6, num_attention_heads=6,
+                  num_key_value_heads=6, max_position_embeddings=512),
+    "base": dict(hidden_size=512, intermediate_size=1408, num_hidden_layers=8, num_attention_heads=8,
+                 num_key_value_heads=8, max_position_embeddings=1024),
+}
+
+
+class ModelError(ValueError):
+    """A model or tokenizer the user pointed at cannot be used (missing path, not a model dir)."""
+
+
+def train_tokenizer(texts: Iterable[str], vocab_size: int = 1024, model_max_length: int = 512):
+    """Train a byte-level BPE tokenizer on `texts` and wrap it as a PreTrainedTokenizerFast.
+
+    Byte-level means any input string round-trips (no unknown token). Special tokens:
+    pad (id 0), eos (id 1), bos (id 2). No BOS is added automatically: prompts are plain text
+    and completions end with eos, which the trainers append.
+    """
+    from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
+    from transformers import PreTrainedTokenizerFast
+
+    tok = Tokenizer(models.BPE())
+    tok.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
+    tok.decoder = decoders.ByteLevel()
+    trainer = trainers.BpeTrainer(
+        vocab_size=vocab_size,
+        min_frequency=2,
+        special_tokens=[PAD_TOKEN, EOS_TOKEN, BOS_TOKEN],
+        initial_alphabet=pre_tokenizers.ByteLevel.alphabet(),
+        show_progress=False,
+    )
+    tok.train_from_iterator(list(texts), trainer=trainer)
+    return PreTrainedTokenizerFast(
+        tokenizer_object=tok,
+        pad_token=PAD_TOKEN,
+        eos_token=EOS_TOKEN,
+        bos_token=BOS_TOKEN,
+        model_max_length=model_max_length,
+        padding_side="left",
+        clean_up_tokenization_spaces=False,
+    )
+
+
+def build_model(preset: str, tokenizer, seed: int = 0, dtype: torch.dtype = torch.float32):
+    """A randomly initialised LlamaForCausalLM for `preset`, sized to `tokenizer`'s vocabulary."""
+    from transformers import LlamaConfig, LlamaForCausalLM
+
+    if preset not in PRESETS:
+        raise ModelError(f"unknown model preset {preset!r}; choose one of {sorted(PRESETS)} or give a model directory")
+    cfg = LlamaConfig(
+        vocab_size=len(tokenizer),
+        tie_word_embeddings=True,
+        pad_token_id=tokenizer.pad_token_id,
+        eos_token_id=tokenizer.eos_token_id,
+        bos_token_id=tokenizer.bos_token_id,
+        attention_bias=False,
+        mlp_bias=False,
+        **PRESETS[preset],
+    )
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = LlamaForCausalLM(cfg)
+    return model.to(dtype)
+
+
+def is_model_dir(path: str | os.PathLike) -> bool:
+    p = Path(path)
+    return p.is_dir() and (p / "config.json").is_file()
+
+
+def load_tokenizer(path: str | os.PathLike):
+    from transformers import AutoTokenizer
+
+    p = Path(path)
+    if not p.is_dir():
+        raise ModelError(f"model path {str(p)!r} does not exist; give a local Hugging Face model directory or a preset name ({', '.join(PRESETS)})")
+    tok = AutoTokenizer.from_pretrained(str(p))
+    if tok.eos_token_id is None:
+        raise ModelError(f"tokenizer in {str(p)!r} has no eos token; set one in its tokenizer_config.json")
+    if tok.pad_token_id is None:
+        # Common for real checkpoints (e.g. Llama): padding is masked anyway, so reuse eos.
+        tok.pad_token = tok.eos_token
+    tok.padding_side = "left"
+    return tok
+
+
+def load_model(path: str | os.PathLike, dtype: torch.dtype | None = None, device: str | torch.device = "cpu"):
+    """Load a causal LM from a local directory (never from a hub). fp32 on CPU by default."""
+    from transformers import AutoModelForCausalLM
+
+    p = Path(path)
+    if not is_model_dir(p):
+        what = "does not exist" if not p.exists() else "has no config.json (not a Hugging Face model directory)"
+        raise ModelError(f"model path {str(p)!r} {what}; give a local Hugging Face model directory or a preset name ({', '.join(PRESETS)})")
+    if dtype is None:
+        dtype = torch.float32 if torch.device(device).type == "cpu" else torch.bfloat16
+    model = AutoModelForCausalLM.from_pretrained(str(p), dtype=dtype, local_files_only=True)
+    return model.to(device)
+
+
+def save_model(model, tokenizer, out_dir: str | os.PathLike) -> Path:
+    """Save model + tokenizer as a Hugging Face directory, atomically (write to a temp dir, then rename)."""
+    out = Path(out_dir)
+    tmp = out.with_name(out.name + ".tmp")
+    if tmp.exists():
+        import shutil
+
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    model.save_pretrained(str(tmp), safe_serialization=True)
+    tokenizer.save_pretrained(str(tmp))
+    if out.exists():
+        import shutil
+
+        old = out.with_name(out.name + ".old")
+        if old.exists():
+            shutil.rmtree(old)
+        out.rename(old)
+        tmp.rename(out)
+        shutil.rmtree(old)
+    else:
+        tmp.rename(out)
+    return out
+
+
+def count_parameters(model) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+def bootstrap(preset: str, corpus: Iterable[str], out_dir: str | os.PathLike, *, vocab_size: int = 1024,
+              seed: int = 0, max_length: int = 512):
+    """Build a tokenizer on `corpus` and a random `preset` model; save both to `out_dir`; return (model, tokenizer)."""
+    tokenizer = train_tokenizer(corpus, vocab_size=vocab_size, model_max_length=max_length)
+    model = build_model(preset, tokenizer, seed=seed)
+    save_model(model, tokenizer, out_dir)
+    return model, tokenizer

@@ -1,0 +1,219 @@
+"""Supervised fine-tuning (stage 0): next-token loss on completions, prompt tokens masked.
+
+CPU:        posttrain sft --recipe tiny-summarize            (~2-3 min on 2 cores, from nothing)
+Multi-GPU:  accelerate launch --num_processes 8 -m posttrain sft --recipe tiny-summarize model.path=/path/to/hf-model
+
+Reads top to bottom: build model and data, loop { batch -> loss -> optimizer step -> log
+-> eval / samples -> checkpoint }, save final/ as a Hugging Face directory, then score the
+model on held-out prompts with the task's gold metric next to the untrained model.
+
+Details:
+- Completion-only loss: the mean over completion tokens (eos included) of -log p(token);
+  prompt and padding tokens are masked (`completion_mask`). The mean is over all completion
+  tokens of the optimizer batch, so gradient accumulation gives the same gradient as one
+  big batch (not a mean of per-micro-batch means).
+- Rows longer than model.max_length are dropped with a count (never silently truncated:
+  a truncated completion would teach the model to stop without eos).
+- Log-probs come from `posttrain.logprobs` (the single implementation); samples and the
+  final evaluation come from the rollout engine (nothing here calls `model.generate`).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import torch
+
+from posttrain import loop
+from posttrain.config import Resolved, save_resolved
+from posttrain.logprobs import sequence_logprobs
+
+
+@dataclass
+class SFTConfig:
+    lr: float = 3e-3
+    """Peak learning rate (AdamW)."""
+    weight_decay: float = 0.0
+    """AdamW weight decay (not applied to norms and embeddings)."""
+    batch_size: int = 32
+    """Sequences per optimizer step (global, across processes)."""
+    micro_batch_size: int = 0
+    """Sequences per forward pass; 0 means batch_size (no gradient accumulation)."""
+    max_steps: int = 400
+    """Optimizer steps."""
+    warmup_steps: int = 20
+    """Linear warmup steps."""
+    schedule: Literal["cosine", "linear", "constant"] = "cosine"
+    """Learning-rate schedule after warmup."""
+    min_lr_ratio: float = 0.1
+    """Final learning rate as a fraction of the peak (cosine / linear)."""
+    max_grad_norm: float = 1.0
+    """Gradient clipping norm (0 disables)."""
+    log_every: int = 20
+    """Steps between metric lines."""
+    eval_every: int = 100
+    """Steps between held-out loss evaluations and sample generations (0 disables)."""
+    eval_loss_rows: int = 128
+    """Held-out rows used for the periodic eval loss."""
+    num_samples: int = 2
+    """Held-out prompts whose greedy completions are printed at each eval."""
+    save_every: int = 100
+    """Steps between checkpoints (0: only at the end)."""
+    keep_checkpoints: int = 2
+    """Checkpoints kept on disk (oldest deleted first)."""
+    final_eval_rows: int = 100
+    """Held-out prompts scored with the task's gold metric after training (0 skips)."""
+    max_new_tokens: int = 64
+    """Generation budget for samples and the final evaluation."""
+    seed: int = 0
+    """Seed of data order and init-time randomness."""
+    resume: bool = False
+    """Continue from the newest checkpoint in the run directory."""
+
+
+# ----------------------------------------------------------------------------- data
+def tokenize_sft(rows: list[dict], tokenizer, max_length: int) -> tuple[list[tuple[list[int], list[int]]], int]:
+    """[(prompt_ids, completion_ids + eos)] and the number of rows dropped for length."""
+    prompts = tokenizer([r["prompt"] for r in rows], add_special_tokens=False)["input_ids"]
+    comps = tokenizer([r["completion"] for r in rows], add_special_tokens=False)["input_ids"]
+    out, dropped = [], 0
+    for p, c in zip(prompts, comps):
+        c = c + [tokenizer.eos_token_id]
+        if len(p) + len(c) > max_length:
+            dropped += 1
+            continue
+        out.append((p, c))
+    return out, dropped
+
+
+def collate(pairs: list[tuple[list[int], list[int]]], pad_id: int) -> dict[str, torch.Tensor]:
+    """Right-padded batch: input_ids, attention_mask, completion_mask, all (B, T)."""
+    T = max(len(p) + len(c) for p, c in pairs)
+    B = len(pairs)
+    input_ids = torch.full((B, T), pad_id, dtype=torch.long)
+    attention_mask = torch.zeros((B, T), dtype=torch.long)
+    completion_mask = torch.zeros((B, T), dtype=torch.bool)
+    for i, (p, c) in enumerate(pairs):
+        n = len(p) + len(c)
+        input_ids[i, :n] = torch.tensor(p + c)
+        attention_mask[i, :n] = 1
+        completion_mask[i, len(p):n] = True
+    return {"input_ids": input_ids, "attention_mask": attention_mask, "completion_mask": completion_mask}
+
+
+def sft_loss_sum(model, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, int]:
+    """Summed negative log-likelihood of completion tokens and their count."""
+    logps, _ = sequence_logprobs(model, batch["input_ids"], batch["attention_mask"], batch["completion_mask"])
+    return -(logps * batch["completion_mask"]).sum(), int(batch["completion_mask"].sum())
+
+
+@torch.no_grad()
+def eval_loss(model, pairs, pad_id: int, micro_batch_size: int) -> float:
+    model.eval()
+    total, count = 0.0, 0
+    for chunk in loop.chunks(pairs, micro_batch_size):
+        s, n = sft_loss_sum(model, collate(chunk, pad_id))
+        total += float(s)
+        count += n
+    return total / max(1, count)
+
+
+# ----------------------------------------------------------------------------- train
+def train(res: Resolved, base_dir: Path) -> Path:
+    """Fine-tune the model in `base_dir` on the task; returns the final model directory."""
+    from posttrain import evaluation, tasks
+    from posttrain.models import load_model, load_tokenizer, save_model
+
+    cfg: SFTConfig = res.stage_cfg
+    run_dir = res.stage_dir()
+    accelerator = loop.setup(cfg.seed, res.run.threads)
+    say = print if accelerator.is_main_process else (lambda *a, **k: None)
+    if accelerator.is_main_process:
+        loop.prepare_run_dir(run_dir, cfg.resume, say)
+        save_resolved(res, run_dir / "config.yaml")
+    accelerator.wait_for_everyone()
+
+    # Data first: a bad row must stop the run before any model loads.
+    train_rows = tasks.load_split(res.task, "train")
+    eval_rows = tasks.load_split(res.task, "eval")
+
+    tokenizer = load_tokenizer(base_dir)
+    model = load_model(base_dir, device=accelerator.device)
+    train_pairs, dropped = tokenize_sft(train_rows, tokenizer, res.model.max_length)
+    eval_pairs, _ = tokenize_sft(eval_rows[: cfg.eval_loss_rows], tokenizer, res.model.max_length)
+    if dropped:
+        say(f"[sft] dropped {dropped}/{len(train_rows)} training rows longer than model.max_length={res.model.max_length}")
+    if len(train_pairs) < cfg.batch_size:
+        raise loop.TrainingError(f"only {len(train_pairs)} usable training rows, fewer than batch_size={cfg.batch_size}")
+
+    micro = cfg.micro_batch_size or cfg.batch_size
+    per_process = max(1, cfg.batch_size // accelerator.num_processes)
+    optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
+    scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
+    model, optimizer = accelerator.prepare(model, optimizer)
+    ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
+    metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, accelerator.is_main_process,
+                              res.run.quiet, prefix="[sft] ")
+
+    start = 0
+    if cfg.resume:
+        last = ckpt.latest()
+        if last is None:
+            say(f"[sft] resume=true but no checkpoint in {ckpt.dir}; starting from step 0")
+        else:
+            start = ckpt.load(last, model, optimizer, scheduler)["step"]
+            metrics.truncate_after(start)
+            say(f"[sft] resumed from {last} at step {start}")
+
+    say(f"[sft] {len(train_pairs)} training rows, batch {cfg.batch_size} (micro {micro}), {cfg.max_steps} steps, "
+        f"lr {cfg.lr}, {accelerator.num_processes} process(es) on {accelerator.device}")
+    tokens_seen, t_last = 0, time.time()
+    for step in range(start, cfg.max_steps):
+        idx = loop.batch_indices(len(train_pairs), cfg.batch_size, cfg.seed, step,
+                                 accelerator.process_index, accelerator.num_processes)[:per_process]
+        batch_pairs = [train_pairs[i] for i in idx]
+        micro_batches = [collate(c, tokenizer.pad_token_id) for c in loop.chunks(batch_pairs, micro)]
+        n_tokens = sum(int(mb["completion_mask"].sum()) for mb in micro_batches)
+
+        def loss_fn(mb):
+            s, n = sft_loss_sum(model, mb)
+            return s / n_tokens, {"completion_tokens_sum": n}
+
+        m = loop.optimizer_step(accelerator, model, optimizer, scheduler, micro_batches, loss_fn,
+                                cfg.max_grad_norm, step)
+        tokens_seen += int(sum(int(mb["attention_mask"].sum()) for mb in micro_batches))
+        done = step + 1
+        if done % cfg.log_every == 0 or done == cfg.max_steps:
+            dt = time.time() - t_last
+            metrics.log(done, {"loss": m["loss"], "lr": m["lr"], "grad_norm": m["grad_norm"],
+                               "tokens_per_s": tokens_seen / max(dt, 1e-9)})
+            tokens_seen, t_last = 0, time.time()
+        if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps):
+            el = eval_loss(model, eval_pairs, tokenizer.pad_token_id, micro)
+            metrics.log(done, {"eval_loss": el}, console=False)
+            say(f"[sft] step {done}: eval loss {el:.4f}")
+            if cfg.num_samples and accelerator.is_main_process:
+                show = eval_rows[: cfg.num_samples]
+                outs = evaluation.complete(accelerator.unwrap_model(model), tokenizer, [r["prompt"] for r in show],
+                                           max_new_tokens=cfg.max_new_tokens)
+                for r, o in zip(show, outs):
+                    say(f"    prompt: ...{r['prompt'][-60:]!r}\n    sample: {o!r}")
+        if (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps:
+            ckpt.save(done, model, optimizer, scheduler, {"step": done})
+
+    final = run_dir / "final"
+    if accelerator.is_main_process:
+        save_model(accelerator.unwrap_model(model), tokenizer, final)
+        say(f"[sft] saved {final}")
+        if cfg.final_eval_rows:
+            rows = eval_rows[: cfg.final_eval_rows]
+            before = evaluation.evaluate_model(res.task.name, load_model(base_dir), tokenizer, rows,
+                                               max_new_tokens=cfg.max_new_tokens)
+            after = evaluation.evaluate_model(res.task.name, accelerator.unwrap_model(model), tokenizer, rows,
+                                              max_new_tokens=cfg.max_new_tokens)
+            loop.write_json(run_dir / "eval.json", {"untrained": before, "sft": after})
+            say(evaluation.format_comparison({"untrained": before, "sft": after}, res.task.name))
+    accelerator.wait_for_everyone()
+    return final

@@ -1,0 +1,91 @@
+from dataclasses import dataclass
+from typing import Literal
+
+import pytest
+
+from posttrain.config import ConfigError, coerce, describe_fields, parse_overrides, resolve
+from posttrain.trainers.sft import SFTConfig
+
+
+def test_defaults_recipe_overrides_precedence(tmp_path):
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("task:\n  n_train: 100\nsft:\n  lr: 0.01\n  max_steps: 7\n")
+    res = resolve(str(recipe), "sft", SFTConfig, ["max_steps=9", "task.seed=3", "model.path=small", "sft.batch_size=4"])
+    assert res.recipe == "r"
+    assert res.stage_cfg.lr == 0.01            # recipe over default
+    assert res.stage_cfg.max_steps == 9        # command line over recipe
+    assert res.stage_cfg.batch_size == 4       # dotted stage key
+    assert res.stage_cfg.warmup_steps == SFTConfig().warmup_steps  # default kept
+    assert res.task.n_train == 100 and res.task.seed == 3
+    assert res.model.path == "small"
+
+
+def test_model_sugar_and_scientific_float(tmp_path):
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("sft: {}\n")
+    res = resolve(str(recipe), "sft", SFTConfig, ["model=/some/dir", "lr=1e-3"])
+    assert res.model.path == "/some/dir"
+    assert res.stage_cfg.lr == pytest.approx(1e-3)
+
+
+def test_unknown_key_names_key_and_valid_ones(tmp_path):
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("sft:\n  learning_rate: 0.1\n")
+    with pytest.raises(ConfigError, match=r"unknown config key 'sft.learning_rate'; valid keys in sft: lr, "):
+        resolve(str(recipe), "sft", SFTConfig, [])
+    recipe.write_text("sft: {}\n")
+    with pytest.raises(ConfigError, match=r"unknown config key 'bogus' for stage 'sft'; valid keys: .*lr"):
+        resolve(str(recipe), "sft", SFTConfig, ["bogus=1"])
+    with pytest.raises(ConfigError, match=r"unknown config key 'model.colour'"):
+        resolve(str(recipe), "sft", SFTConfig, ["model.colour=red"])
+
+
+def test_unknown_section_and_bad_yaml(tmp_path):
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("sfx:\n  lr: 1\n")
+    with pytest.raises(ConfigError, match="unknown recipe section 'sfx'"):
+        resolve(str(recipe), "sft", SFTConfig, [])
+    recipe.write_text("sft: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        resolve(str(recipe), "sft", SFTConfig, [])
+
+
+def test_wrong_types(tmp_path):
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("sft:\n  max_steps: ten\n")
+    with pytest.raises(ConfigError, match=r"config key 'sft.max_steps': expected int, got 'ten'"):
+        resolve(str(recipe), "sft", SFTConfig, [])
+    recipe.write_text("sft: {}\n")
+    with pytest.raises(ConfigError, match=r"'sft.schedule': 'wavy' is not one of 'cosine', 'linear', 'constant'"):
+        resolve(str(recipe), "sft", SFTConfig, ["schedule=wavy"])
+    with pytest.raises(ConfigError, match=r"expected bool"):
+        resolve(str(recipe), "sft", SFTConfig, ["resume=maybe"])
+    with pytest.raises(ConfigError, match="key=value"):
+        resolve(str(recipe), "sft", SFTConfig, ["resume"])
+
+
+def test_unknown_recipe_lists_shipped():
+    with pytest.raises(ConfigError, match=r"unknown recipe 'nope'; shipped recipes: .*tiny-summarize"):
+        resolve("nope", "sft", SFTConfig, [])
+
+
+def test_coerce_rules():
+    assert coerce(3, float, "k") == 3.0 and isinstance(coerce(3, float, "k"), float)
+    with pytest.raises(ConfigError):
+        coerce(True, int, "k")  # bools are not ints in a config
+    assert coerce(None, int | None, "k") is None
+    assert coerce(["a", "b"], list[str], "k") == ["a", "b"]
+    with pytest.raises(ConfigError, match=r"k\[1\]"):
+        coerce(["a", 2], list[str], "k")
+    assert coerce("x", Literal["x", "y"], "k") == "x"
+
+
+def test_parse_overrides_yaml_values():
+    assert parse_overrides(["a=1", "b=true", "c=hello", "d=[1, 2]", "e=", "f=null"]) == [
+        ("a", 1), ("b", True), ("c", "hello"), ("d", [1, 2]), ("e", ""), ("f", None)]
+
+
+def test_describe_fields_has_docs():
+    rows = {r[0]: r for r in describe_fields(SFTConfig)}
+    assert "Peak learning rate" in rows["lr"][3]
+    assert rows["schedule"][1].startswith("one of")

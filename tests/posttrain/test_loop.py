@@ -1,0 +1,123 @@
+import json
+import math
+
+import pytest
+import torch
+
+from posttrain import loop
+
+
+def test_lr_factor_warmup_cosine_linear():
+    assert loop.lr_factor(0, 10, 110, "cosine", 0.1) == pytest.approx(0.1)
+    assert loop.lr_factor(9, 10, 110, "cosine", 0.1) == pytest.approx(1.0)
+    assert loop.lr_factor(10, 10, 110, "cosine", 0.1) == pytest.approx(1.0)
+    assert loop.lr_factor(60, 10, 110, "cosine", 0.1) == pytest.approx(0.1 + 0.9 * 0.5)
+    assert loop.lr_factor(110, 10, 110, "cosine", 0.1) == pytest.approx(0.1)
+    assert loop.lr_factor(60, 10, 110, "linear", 0.0) == pytest.approx(0.5)
+    assert loop.lr_factor(60, 10, 110, "constant", 0.0) == 1.0
+
+
+def test_batch_indices_pure_epochs_and_shards():
+    a = loop.batch_indices(10, 4, seed=1, step=3)
+    assert a == loop.batch_indices(10, 4, seed=1, step=3)
+    # 2 batches per epoch (last partial dropped); an epoch has no repeats
+    e0 = loop.batch_indices(10, 4, 1, 0) + loop.batch_indices(10, 4, 1, 1)
+    assert len(set(e0)) == 8
+    assert loop.batch_indices(10, 4, 1, 2) != loop.batch_indices(10, 4, 1, 0)  # new epoch, new order
+    full = loop.batch_indices(10, 4, 1, 5)
+    assert loop.batch_indices(10, 4, 1, 5, rank=0, world=2) + loop.batch_indices(10, 4, 1, 5, rank=1, world=2) \
+        == full[0::2] + full[1::2]
+    with pytest.raises(ValueError, match="fewer than batch_size"):
+        loop.batch_indices(3, 4, 0, 0)
+
+
+def _toy():
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 1)
+    opt = loop.build_optimizer(model, lr=0.1)
+    sch = loop.build_scheduler(opt, 0, 10, "constant")
+    return model, opt, sch
+
+
+class _Acc:  # the subset of Accelerator used by optimizer_step / Checkpointer
+    num_processes = 1
+    is_main_process = True
+
+    def backward(self, loss):
+        loss.backward()
+
+    def clip_grad_norm_(self, params, max_norm):
+        return torch.nn.utils.clip_grad_norm_(params, max_norm)
+
+    def unwrap_model(self, m):
+        return m
+
+    def wait_for_everyone(self):
+        pass
+
+
+def test_accumulation_equals_one_big_batch():
+    x = torch.randn(8, 3)
+    y = torch.randn(8, 1)
+    grads = []
+    for splits in ([8], [4, 4], [2, 2, 2, 2]):
+        model, opt, sch = _toy()
+        mbs = list(torch.split(torch.arange(8), splits))
+
+        def loss_fn(ix):
+            return ((model(x[ix]) - y[ix]) ** 2).sum() / 8, {}
+
+        before = model.weight.detach().clone()
+        loop.optimizer_step(_Acc(), model, opt, sch, mbs, loss_fn, max_grad_norm=0, step=0)
+        grads.append(model.weight.detach() - before)
+    assert torch.allclose(grads[0], grads[1], atol=1e-6) and torch.allclose(grads[0], grads[2], atol=1e-6)
+
+
+def test_nonfinite_loss_raises_with_step():
+    model, opt, sch = _toy()
+    with pytest.raises(loop.TrainingError, match="non-finite loss .* at step 17"):
+        loop.optimizer_step(_Acc(), model, opt, sch, [0], lambda mb: (torch.tensor(float("nan"), requires_grad=True), {}), 1.0, 17)
+
+
+def test_checkpoint_roundtrip_atomic_and_pruned(tmp_path):
+    model, opt, sch = _toy()
+    ck = loop.Checkpointer(tmp_path, keep=2, accelerator=_Acc())
+    x = torch.randn(4, 3)
+    for step in (1, 2, 3):
+        loop.optimizer_step(_Acc(), model, opt, sch, [0], lambda mb: (model(x).pow(2).mean(), {}), 1.0, step)
+        ck.save(step, model, opt, sch, {"step": step})
+    assert [p.name for p in ck.all()] == ["step-000002", "step-000003"]
+    # a torn temp dir from a killed save is ignored
+    (ck.dir / ".tmp-step-000004-1").mkdir()
+    assert ck.latest().name == "step-000003"
+    torch.manual_seed(123)
+    expected_next = torch.rand(1)
+    m2, o2, s2 = _toy()
+    torch.manual_seed(123)
+    ck.save(4, model, opt, sch, {"step": 4})
+    info = ck.load(ck.latest(), m2, o2, s2)
+    assert info["step"] == 4 and info["data"] == {"step": 4}
+    assert torch.equal(m2.weight, model.weight)
+    assert o2.state_dict()["state"][0]["exp_avg"].equal(opt.state_dict()["state"][0]["exp_avg"])
+    assert torch.rand(1).equal(expected_next)  # RNG restored to the saved state
+
+
+def test_metrics_truncate_after(tmp_path):
+    m = loop.MetricsLog(tmp_path / "metrics.jsonl", 10, quiet=True)
+    for s in (1, 2, 3, 4):
+        m.log(s, {"loss": 1.0 / s})
+    with open(tmp_path / "metrics.jsonl", "a") as f:
+        f.write('{"step": 5, "lo')  # torn line of a killed run
+    m.truncate_after(2)
+    rows = [json.loads(l) for l in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [1, 2]
+    assert math.isclose(rows[1]["loss"], 0.5)
+
+
+def test_prepare_run_dir_keeps_previous(tmp_path):
+    d = tmp_path / "sft"
+    d.mkdir()
+    (d / "metrics.jsonl").write_text("x")
+    loop.prepare_run_dir(d, resume=False, log=lambda s: None)
+    assert (tmp_path / "sft.prev" / "metrics.jsonl").read_text() == "x"
+    assert d.is_dir() and not any(d.iterdir())
