@@ -12,11 +12,10 @@ from typing import Any
 def complete(model, tokenizer, prompts: list[str], *, max_new_tokens: int = 64, greedy: bool = True,
              temperature: float = 1.0, n: int = 1, seed: int = 0) -> list[str]:
     """Completion texts for `prompts` (n per prompt, prompt-major), from the rollout engine."""
-    from posttrain.rollout import RolloutEngine, SamplingParams
+    from posttrain.rollout import SamplingParams, generate
 
     params = SamplingParams(n=n, max_new_tokens=max_new_tokens, greedy=greedy, temperature=temperature, seed=seed)
-    rollouts = RolloutEngine(model, tokenizer).generate(prompts, params)
-    return [r.text for r in rollouts]
+    return [r.text for r in generate(model, tokenizer, prompts, params)]
 
 
 def evaluate_model(task_name: str, model, tokenizer, rows: list[dict[str, Any]], *, max_new_tokens: int = 64,

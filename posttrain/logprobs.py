@@ -1,0 +1,204 @@
+"""Per-token log-probs of given tokens under a model, entropy, and masked reductions: the single
+implementation every trainer uses (policy under autograd, reference / old policy under no-grad).
+
+CPU: `python -c "import posttrain.logprobs"` (pure functions; exercised by tests/posttrain/test_logprobs.py).
+Multi-GPU: called inside each accelerate process on its own batch; nothing here communicates.
+
+Alignment (the one convention):
+    logps[:, t] = log p(input_ids[:, t] | input_ids[:, :t])     (B, T), 0 where completion_mask is 0
+so every per-token tensor lines up with `input_ids` (the `RolloutBatch` layout of `posttrain.rollout`).
+Column 0 never has a log-prob (nothing precedes it).
+
+Positions. The model is called as `model(input_ids=, attention_mask=, position_ids=)` with
+position_ids = cumsum(attention_mask) - 1 (clamped at 0), the same as HF `generate` and the rollout
+engine use. Left-padded, right-padded and unpadded batches therefore give the same numbers per row.
+Passing no position_ids would be wrong for left padding: Llama-family models then count positions
+from column 0, padding included. Wrappers (accelerate/DDP, peft, torch.compile) work: we only read
+`.logits` from the output.
+
+Memory. Logits are requested only from the first completion column on (`logits_to_keep`, when the
+model accepts it), and log-probs are gathered logit minus logsumexp: no (B, T, V) log_softmax copy is
+made. Under autograd the logits themselves are kept for the backward pass (as for any loss on them).
+"""
+from __future__ import annotations
+
+import inspect
+from typing import Any, Mapping
+
+import torch
+from torch import nn
+
+# ------------------------------------------------------------------ model plumbing
+
+
+def unwrap_model(model):
+    """The HF model inside DDP / accelerate / torch.compile wrappers (peft models are returned as they are)."""
+    seen = set()
+    while id(model) not in seen:
+        seen.add(id(model))
+        if hasattr(model, "_orig_mod"):
+            model = model._orig_mod
+        elif isinstance(model, (nn.parallel.DistributedDataParallel, nn.DataParallel)) or (
+            isinstance(getattr(model, "module", None), nn.Module) and not hasattr(model, "config")
+        ):
+            model = model.module
+    return model
+
+
+def _base_forward(model):
+    m = unwrap_model(model)
+    if hasattr(m, "get_base_model"):  # peft
+        m = m.get_base_model()
+    return m.forward
+
+
+def _accepts(model, name: str) -> bool:
+    try:
+        return name in inspect.signature(_base_forward(model)).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+def position_ids_from_mask(attention_mask: torch.Tensor) -> torch.Tensor:
+    """(B, T) 0/1 mask -> (B, T) positions counting real tokens only (pads get 0)."""
+    return (attention_mask.long().cumsum(-1) - 1).clamp_(min=0)
+
+
+def model_device(model) -> torch.device:
+    for p in model.parameters():
+        return p.device
+    return torch.device("cpu")
+
+
+# ------------------------------------------------------------------ log-probs
+
+
+def token_logprobs(logits: torch.Tensor, targets: torch.Tensor, temperature: float = 1.0,
+                   return_entropy: bool = False):
+    """logits (..., V), targets (...) -> (log p(target) (...), entropy (...) | None), no log_softmax copy."""
+    if temperature != 1.0:
+        logits = logits / temperature
+    lse = torch.logsumexp(logits, dim=-1)  # (...)
+    logp = logits.gather(-1, targets.unsqueeze(-1)).squeeze(-1) - lse  # (...)
+    entropy = None
+    if return_entropy:
+        # H = lse - sum_v p_v * logit_v
+        entropy = lse - (torch.softmax(logits, -1) * logits).sum(-1)
+    return logp, entropy
+
+
+def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tensor,
+                      completion_mask: torch.Tensor | None = None, *, temperature: float = 1.0,
+                      return_entropy: bool = False):
+    """Log-probs of `input_ids` under `model`, aligned with input_ids (see module docstring).
+
+    input_ids (B, T) long; attention_mask (B, T) 0/1; completion_mask (B, T) 0/1 selects the tokens to
+    score (default: every real token that has a real token before it).
+    Returns (logps (B, T), entropy (B, T) | None), both 0 where completion_mask is 0; differentiable
+    when called under autograd. `temperature` divides the logits first (use the sampling temperature
+    to get the sampler's distribution; PPO/GRPO ratios use 1.0).
+    """
+    if input_ids.dim() != 2 or input_ids.shape != attention_mask.shape:
+        raise ValueError(f"sequence_logprobs: input_ids {tuple(input_ids.shape)} and attention_mask "
+                         f"{tuple(attention_mask.shape)} must both be (B, T)")
+    B, T = input_ids.shape
+    dev = model_device(model)
+    input_ids, attention_mask = input_ids.to(dev), attention_mask.to(dev)
+    if completion_mask is None:
+        completion_mask = torch.zeros_like(attention_mask)
+        completion_mask[:, 1:] = attention_mask[:, 1:] * attention_mask[:, :-1]
+    else:
+        if completion_mask.shape != input_ids.shape:
+            raise ValueError(f"sequence_logprobs: completion_mask {tuple(completion_mask.shape)} must match "
+                             f"input_ids {tuple(input_ids.shape)}")
+        completion_mask = completion_mask.to(dev)
+    completion_mask = completion_mask.clone()
+    completion_mask[:, 0] = 0
+    cols = completion_mask.any(0).nonzero()
+    dtype = torch.float32
+    if T < 2 or cols.numel() == 0:
+        zeros = torch.zeros(B, T, device=dev, dtype=dtype)
+        return zeros, (zeros.clone() if return_entropy else None)
+    c = int(cols[0])  # first scored column; logits needed from position c-1 on
+    kw: dict[str, Any] = {}
+    if _accepts(model, "position_ids"):
+        kw["position_ids"] = position_ids_from_mask(attention_mask)
+    keep_kw = _accepts(model, "logits_to_keep") and c > 1
+    if keep_kw:
+        kw["logits_to_keep"] = T - c + 1
+    logits = model(input_ids=input_ids, attention_mask=attention_mask, **kw).logits  # (B, T or T-c+1, V)
+    logits = logits[:, -(T - c + 1):-1]  # (B, T-c, V) predicts columns c .. T-1
+    logp, ent = token_logprobs(logits.float(), input_ids[:, c:], temperature, return_entropy)  # (B, T-c)
+    m = completion_mask[:, c:].to(logp.dtype)
+    pad = torch.zeros(B, c, device=dev, dtype=logp.dtype)
+    logps = torch.cat([pad, logp * m], 1)  # (B, T)
+    entropy = torch.cat([pad, ent * m], 1) if return_entropy else None  # (B, T)
+    return logps, entropy
+
+
+@torch.no_grad()
+def batched_logprobs(model, batch: Any, micro_batch_size: int = 16, *, temperature: float = 1.0,
+                     return_entropy: bool = False):
+    """`sequence_logprobs` without grad over a RolloutBatch (or a mapping with input_ids, attention_mask,
+    completion_mask) in micro-batches; all-padding columns of each micro-batch are trimmed first.
+    Returns (logps (B, T), entropy (B, T) | None) on the batch's device."""
+    get = (lambda k: batch[k]) if isinstance(batch, Mapping) else (lambda k: getattr(batch, k))
+    input_ids, attention_mask = get("input_ids"), get("attention_mask")
+    try:
+        completion_mask = get("completion_mask")
+    except (KeyError, AttributeError):
+        completion_mask = None
+    if micro_batch_size < 1:
+        raise ValueError(f"batched_logprobs: micro_batch_size must be >= 1, got {micro_batch_size}")
+    B, T = input_ids.shape
+    out = torch.zeros(B, T, dtype=torch.float32, device=input_ids.device)
+    ent_out = torch.zeros_like(out) if return_entropy else None
+    for i in range(0, B, micro_batch_size):
+        sl = slice(i, i + micro_batch_size)
+        am = attention_mask[sl]
+        live = am.any(0).nonzero()
+        if live.numel() == 0:
+            continue
+        lo, hi = int(live[0]), int(live[-1]) + 1
+        cm = None if completion_mask is None else completion_mask[sl, lo:hi]
+        lp, en = sequence_logprobs(model, input_ids[sl, lo:hi], am[:, lo:hi], cm, temperature=temperature,
+                                   return_entropy=return_entropy)
+        out[sl, lo:hi] = lp.to(out.device)
+        if return_entropy:
+            ent_out[sl, lo:hi] = en.to(out.device)
+    return out, ent_out
+
+
+# ------------------------------------------------------------------ masked reductions
+
+
+def masked_sum(x: torch.Tensor, mask: torch.Tensor, dim: int | None = None) -> torch.Tensor:
+    """Sum of x where mask is 1 (over `dim`, or everything)."""
+    mask = mask.to(x.dtype)
+    return (x * mask).sum() if dim is None else (x * mask).sum(dim)
+
+
+def masked_mean(x: torch.Tensor, mask: torch.Tensor, dim: int | None = None) -> torch.Tensor:
+    """Mean of x where mask is 1; 0 where the mask is empty (never NaN)."""
+    mask = mask.to(x.dtype)
+    total = mask.sum() if dim is None else mask.sum(dim)
+    return masked_sum(x, mask, dim) / total.clamp(min=1.0)
+
+
+def masked_var(x: torch.Tensor, mask: torch.Tensor, unbiased: bool = True) -> torch.Tensor:
+    """Variance of x over all positions where mask is 1 (Bessel-corrected when unbiased and n > 1)."""
+    mask = mask.to(x.dtype)
+    mean = masked_mean(x, mask)
+    var = masked_mean((x - mean) ** 2, mask)
+    if unbiased:
+        n = mask.sum()
+        var = var * (n / (n - 1)) if n > 1 else var
+    return var
+
+
+def masked_whiten(x: torch.Tensor, mask: torch.Tensor, shift_mean: bool = True, eps: float = 1e-8) -> torch.Tensor:
+    """(x - mean) / sqrt(var + eps) over the masked positions (TRL's `masked_whiten`: unbiased variance;
+    with shift_mean=False the mean is added back). Positions outside the mask are returned as computed."""
+    mean, var = masked_mean(x, mask), masked_var(x, mask)
+    whitened = (x - mean) * torch.rsqrt(var + eps)
+    return whitened if shift_mean else whitened + mean

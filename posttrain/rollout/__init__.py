@@ -1,0 +1,64 @@
+"""The rollout engine: the only text generator in posttrain (PPO, GRPO, preference pairs, best-of-K, SFT
+samples and evaluation all sample through `generate`).
+
+CPU: `python -c "from posttrain.rollout import generate"`; speed: `python scripts/bench.py --only generate`.
+Multi-GPU: each accelerate process calls `generate` on its own shard of prompts (pass dataset indices
+as `prompt_keys` so samples do not depend on the sharding).
+
+    from posttrain.rollout import generate, collate_rollouts, save_rollouts
+    rollouts = generate(model, tokenizer, ["2+2=", "Summarize: ..."], n=4, max_new_tokens=64,
+                        temperature=1.0, top_p=0.95, stop=["\\n\\n"], seed=step)
+    for r in rollouts:
+        r.reward = score(r.text)
+    batch = collate_rollouts(rollouts, tokenizer.pad_token_id)   # padded tensors for the loss
+    save_rollouts(rollouts, "runs/x/grpo/rollouts/step_0001.jsonl")
+
+Contract
+- Finishing. A row ends at EOS (finish_reason "eos"; the EOS token is the last completion token, mask 1,
+  and is not in `text`), at a stop string ("stop"; `completion_ids` end with the token that completed the
+  stop string, `text` is cut right before the stop string, or right after it with `include_stop=True`),
+  or after max_new_tokens ("length"). `ignore_eos=True` disables EOS (benchmarks).
+- Context. A prompt with >= context tokens (config.max_position_embeddings) is a ValueError. When
+  prompt + max_new_tokens exceeds the context, that row's budget is clipped to fit (finish "length").
+- Errors. Empty prompt, token ids outside the vocabulary, n < 1, max_new_tokens < 1, temperature < 0,
+  top_k < 0, top_p outside (0, 1], a stop given as a bare string: one-line ValueError.
+- Log-probs. `Rollout.logprobs`: under the distribution actually sampled (temperature, top-k, top-p,
+  renormalised; 0 for greedy). `Rollout.policy_logprobs`: raw model log-softmax at temperature 1, what
+  PPO/GRPO ratios need; equal (1e-4) to `posttrain.logprobs.sequence_logprobs` on the same tokens.
+- Determinism. Every random draw is u = hash(seed, prompt key, sample index, step) (counter-based, per
+  row; `sampling.row_uniforms`). Guaranteed: same model, inputs, params and seed -> identical rollouts
+  (same machine and torch build). The samples of a (prompt key, sample index) do not depend on which
+  other prompts are in the call, their order, `n`'s other samples, `max_batch_tokens` or when other
+  rows finish -- up to floating-point differences in logits between batch shapes (~1e-6), which change
+  a token only when u falls within that distance of a boundary of the cumulative distribution.
+  Greedy decoding has the same caveat for near-ties of the top two logits.
+- Memory. Rows are split into micro-batches with rows * (longest prompt + max_new_tokens) <=
+  max_batch_tokens (default 32768 tokens); the KV cache of a micro-batch is that many token slots
+  x layers x 2 x kv_heads x head_dim x dtype bytes (tiny: 4 KiB per slot; small: 18 KiB).
+- Speed path. `select_backend` picks the lean Llama-family forward (`backends.LeanLlama`: fused
+  weights, preallocated cache, see its docstring) when the model supports it, else the HF forward with
+  its own cache (other architectures, peft adapters, quantised layers). Both drop finished rows from
+  the active batch once >= 1/8 of it has finished. Generation runs under `torch.inference_mode`, in eval
+  mode (no dropout). Weights are read at each `generate` call, so a training step in between is seen.
+"""
+from .backends import LeanLlama, lean_support
+from .engine import DEFAULT_MAX_BATCH_TOKENS, context_length, generate, select_backend, tune_malloc
+from .records import Rollout, RolloutBatch, collate_rollouts, load_rollouts, save_rollouts
+from .sampling import SamplingParams, row_uniforms
+
+__all__ = [
+    "DEFAULT_MAX_BATCH_TOKENS",
+    "LeanLlama",
+    "Rollout",
+    "RolloutBatch",
+    "SamplingParams",
+    "collate_rollouts",
+    "context_length",
+    "generate",
+    "lean_support",
+    "load_rollouts",
+    "row_uniforms",
+    "save_rollouts",
+    "select_backend",
+    "tune_malloc",
+]

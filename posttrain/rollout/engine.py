@@ -1,0 +1,332 @@
+"""`generate`: the batched sampling loop (see `posttrain.rollout` for the contract)."""
+from __future__ import annotations
+
+import ctypes
+import dataclasses
+import logging
+import sys
+from typing import Sequence
+
+import torch
+
+from ..logprobs import unwrap_model
+from .backends import HFForward, LeanLlama, lean_support
+from .records import Rollout
+from .sampling import Sampler, SamplingParams, find_stop, row_uniforms, stop_candidates
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MAX_BATCH_TOKENS = 32768
+_malloc_tuned = False
+
+
+def tune_malloc() -> bool:
+    """Raise glibc's mmap / trim thresholds in-process (once) so per-step activation buffers are reused
+    instead of being mmapped, page-faulted and unmapped every decode step. No-op off glibc."""
+    global _malloc_tuned
+    if _malloc_tuned:
+        return True
+    _malloc_tuned = True
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+        ok = libc.mallopt(M_MMAP_THRESHOLD, 1 << 30) and libc.mallopt(M_TRIM_THRESHOLD, 1 << 30)
+        return bool(ok)
+    except (OSError, AttributeError):
+        return False
+
+
+def context_length(model) -> int | None:
+    cfg = getattr(unwrap_model(model), "config", None)
+    n = getattr(cfg, "max_position_embeddings", None)
+    return int(n) if n else None
+
+
+def select_backend(model, max_len: int = 0, backend: str = "auto"):
+    """(forward object, one-line reason): "lean" when supported, else the HF forward."""
+    if backend not in ("auto", "lean", "hf"):
+        raise ValueError(f"rollout backend must be 'auto', 'lean' or 'hf', got {backend!r}")
+    if backend == "hf":
+        return HFForward(model), "HF forward (requested)"
+    inner = unwrap_model(model)
+    ok, why = lean_support(inner, max_len)
+    if ok:
+        return LeanLlama(inner), why
+    if backend == "lean":
+        raise ValueError(f"rollout backend 'lean' cannot run this model: {why}; use backend='auto' or 'hf'")
+    return HFForward(model), f"HF forward ({why})"
+
+
+def _tokenize(tokenizer, prompts) -> tuple[list[list[int]], list[str | None]]:
+    ids: list[list[int] | None] = [None] * len(prompts)
+    texts: list[str | None] = [None] * len(prompts)
+    str_pos = [i for i, p in enumerate(prompts) if isinstance(p, str)]
+    if str_pos:
+        if tokenizer is None:
+            raise ValueError("generate: prompts are strings but no tokenizer was given")
+        enc = tokenizer([prompts[i] for i in str_pos], add_special_tokens=True)["input_ids"]
+        for i, e in zip(str_pos, enc):
+            ids[i], texts[i] = list(e), prompts[i]
+    for i, p in enumerate(prompts):
+        if ids[i] is None:
+            if isinstance(p, torch.Tensor):
+                p = p.tolist()
+            if not isinstance(p, (list, tuple)) or not all(isinstance(x, int) and not isinstance(x, bool) for x in p):
+                raise ValueError(f"generate: prompt {i} must be a string or a list of token ids, got {type(p).__name__}")
+            ids[i] = list(p)
+    return ids, texts  # type: ignore[return-value]
+
+
+def _eos_ids(model, tokenizer) -> list[int]:
+    out = set()
+    if tokenizer is not None and tokenizer.eos_token_id is not None:
+        out.add(int(tokenizer.eos_token_id))
+    gc = getattr(unwrap_model(model), "generation_config", None)
+    e = getattr(gc, "eos_token_id", None)
+    if e is not None:
+        out.update(int(x) for x in (e if isinstance(e, (list, tuple)) else [e]))
+    return sorted(out)
+
+
+def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling: SamplingParams | None = None, *,
+             prompt_keys: Sequence[int] | None = None, max_batch_tokens: int = DEFAULT_MAX_BATCH_TOKENS,
+             backend: str = "auto", **overrides) -> list[Rollout]:
+    """Sample `n` completions for each prompt; returns Rollouts ordered by (prompt_index, sample_index).
+
+    prompts: strings (tokenized with `add_special_tokens=True`) or lists of token ids, any lengths.
+    sampling: a SamplingParams; keyword `overrides` replace its fields (`generate(m, t, ps, n=4, top_p=0.9)`).
+    prompt_keys: one integer per prompt that seeds its randomness (default: its index). Pass stable ids
+        (e.g. dataset indices) to get the same samples whatever else is in the call.
+    max_batch_tokens: KV-cache budget; rows are split into micro-batches with
+        rows * (longest prompt + max_new_tokens) <= max_batch_tokens (at least one row each).
+    backend: "auto" (lean path when supported, else HF forward), "lean" or "hf".
+    """
+    params = sampling or SamplingParams()
+    if overrides:
+        names = {f.name for f in dataclasses.fields(SamplingParams)}
+        unknown = sorted(set(overrides) - names)
+        if unknown:
+            raise ValueError(f"generate: unknown sampling option(s) {unknown}; known: {sorted(names)}")
+        params = dataclasses.replace(params, **overrides)
+    if isinstance(params.stop, str):
+        raise ValueError(f"sampling: stop must be a list of strings, got the string {params.stop!r}")
+    params = dataclasses.replace(params, stop=tuple(params.stop)).validate()
+    if not isinstance(max_batch_tokens, int) or max_batch_tokens < 1:
+        raise ValueError(f"generate: max_batch_tokens must be a positive integer, got {max_batch_tokens!r}")
+    if isinstance(prompts, (str, torch.Tensor)):
+        raise ValueError("generate: prompts must be a list of strings or of token-id lists")
+    prompts = list(prompts)
+    if not prompts:
+        return []
+    ids, texts = _tokenize(tokenizer, prompts)
+
+    inner = unwrap_model(model)
+    vocab = int(inner.get_output_embeddings().weight.shape[0]) if hasattr(inner, "get_output_embeddings") \
+        and inner.get_output_embeddings() is not None else int(inner.config.vocab_size)
+    ctx = context_length(model)
+    limits = []
+    for i, p in enumerate(ids):
+        if not p:
+            raise ValueError(f"generate: prompt {i} is empty (0 tokens); give at least one token")
+        if min(p) < 0 or max(p) >= vocab:
+            raise ValueError(f"generate: prompt {i} has token ids outside [0, {vocab}) (vocabulary of the model)")
+        if ctx is not None and len(p) >= ctx:
+            raise ValueError(f"generate: prompt {i} has {len(p)} tokens but the model's context is {ctx}; "
+                             f"shorten it to at most {ctx - 1} tokens")
+        limits.append(params.max_new_tokens if ctx is None else min(params.max_new_tokens, ctx - len(p)))
+    if prompt_keys is None:
+        keys = list(range(len(ids)))
+    else:
+        keys = [int(k) for k in prompt_keys]
+        if len(keys) != len(ids):
+            raise ValueError(f"generate: prompt_keys has {len(keys)} entries for {len(ids)} prompts")
+
+    fwd, why = select_backend(model, max(len(p) for p in ids) + params.max_new_tokens, backend)
+    log.debug("rollout backend: %s", why)
+    tune_malloc()
+    stop_table = None
+    if params.stop:
+        stop_table = stop_candidates(tokenizer, params.stop, vocab, fwd.device)
+    sampler = Sampler(params, vocab)
+    eos = [] if params.ignore_eos else _eos_ids(model, tokenizer)
+    pad_id = tokenizer.pad_token_id if tokenizer is not None and tokenizer.pad_token_id is not None else 0
+
+    # Rows (prompt, sample) grouped by prompt; prompts sorted by length so micro-batches pad little.
+    n = params.n
+    order = sorted(range(len(ids)), key=lambda i: (len(ids[i]), i))
+    batches: list[list[tuple[int, int]]] = []
+    cur: list[tuple[int, int]] = []
+    cur_p = 0
+    for i in order:
+        for j in range(n):
+            need = max(cur_p, len(ids[i])) + params.max_new_tokens
+            if cur and (len(cur) + 1) * need > max_batch_tokens:
+                batches.append(cur)
+                cur, cur_p = [], 0
+            cur.append((i, j))
+            cur_p = max(cur_p, len(ids[i]))
+    batches.append(cur)
+
+    results: dict[tuple[int, int], tuple[list[int], list[float], list[float], str]] = {}
+    model_was_training = getattr(model, "training", False)
+    if isinstance(fwd, HFForward) and model_was_training:
+        model.eval()
+    try:
+        with torch.inference_mode():
+            for rows in batches:
+                _run_micro_batch(fwd, sampler, params, rows, ids, limits, keys, eos, stop_table, tokenizer,
+                                 pad_id, results)
+    finally:
+        if isinstance(fwd, HFForward) and model_was_training:
+            model.train()
+    return _finish(results, ids, texts, params, tokenizer)
+
+
+def _run_micro_batch(fwd, sampler, params, rows, ids, limits, keys, eos, stop_table, tokenizer, pad_id, results):
+    dev = fwd.device
+    prompts = []  # unique prompts of this micro-batch, in row order
+    row_of_list = []
+    for i, _ in rows:
+        if not prompts or prompts[-1] != i:
+            prompts.append(i)
+        row_of_list.append(len(prompts) - 1)
+    U, B = len(prompts), len(rows)
+    Tp = max(len(ids[i]) for i in prompts)
+    ids_t = torch.full((U, Tp), pad_id, dtype=torch.long)  # (U, Tp) left-padded
+    valid = torch.zeros((U, Tp), dtype=torch.bool)  # (U, Tp)
+    for u, i in enumerate(prompts):
+        p = ids[i]
+        ids_t[u, Tp - len(p):] = torch.tensor(p, dtype=torch.long)
+        valid[u, Tp - len(p):] = True
+    pos = (valid.long().cumsum(-1) - 1).clamp_(min=0)  # (U, Tp) position ids, as HF generate computes them
+    ids_t, valid, pos = ids_t.to(dev), valid.to(dev), pos.to(dev)
+    row_of = torch.tensor(row_of_list, dtype=torch.long, device=dev)  # (B,)
+    row_limit = [limits[i] for i, _ in rows]
+    steps = max(row_limit)
+    plen = torch.tensor([len(ids[i]) for i, _ in rows], dtype=torch.long, device=dev)  # (B,)
+
+    fwd.start(B, Tp + steps - 1, int(plen.max()) + steps)
+    u_all = row_uniforms(params.seed, torch.tensor([keys[i] for i, _ in rows], device=dev),
+                         torch.tensor([j for _, j in rows], device=dev), steps)  # (B, steps)
+    out_tok = torch.full((B, steps), pad_id, dtype=torch.long, device=dev)  # (B, steps), rows in slot order
+    out_lp = torch.zeros((B, steps), dtype=torch.float32, device=dev)
+    out_pol = torch.zeros((B, steps), dtype=torch.float32, device=dev)
+    fin_tok, fin_lp, fin_pol = out_tok.clone(), out_lp.clone(), out_pol.clone()  # (B, steps), by row
+    eos_t = torch.tensor(eos, dtype=torch.long, device=dev) if eos else None
+
+    slot_row = list(range(B))  # slot -> row of this micro-batch
+    length = [0] * B
+    reason = ["length"] * B
+    dead: set[int] = set()  # slots that finished but are still in the active batch
+    limit_steps = {}
+    for r, lim in enumerate(row_limit):
+        limit_steps.setdefault(lim - 1, []).append(r)  # step index at which a row hits its limit
+    alive_n = B
+
+    def retire(slots: list[int]) -> None:
+        s = torch.tensor(slots, dtype=torch.long, device=dev)
+        r = torch.tensor([slot_row[x] for x in slots], dtype=torch.long, device=dev)
+        fin_tok[r] = out_tok[s]
+        fin_lp[r] = out_lp[s]
+        fin_pol[r] = out_pol[s]
+
+    logits = fwd.prefill(ids_t, valid, pos, row_of)  # (B, V)
+    next_pos = plen.clone()  # (B,) position of the token fed at the next decode step
+    tok = None
+    Bact = B
+    for t in range(steps):
+        if t > 0:
+            logits = fwd.decode(tok, next_pos, Tp + t - 1)  # (Bact, V)
+            next_pos += 1
+        tok, lp, pol = sampler(logits.float(), u_all[:Bact, t:t + 1])  # (Bact, 1) each
+        out_tok[:Bact, t:t + 1] = tok
+        out_lp[:Bact, t:t + 1] = lp
+        out_pol[:Bact, t:t + 1] = pol
+
+        newly: list[tuple[int, str]] = []
+        if eos_t is not None:
+            hit = (tok == eos_t[0]) if eos_t.numel() == 1 else torch.isin(tok, eos_t)
+            if bool(hit.any()):
+                newly += [(s, "eos") for s in hit.view(-1).nonzero().view(-1).tolist() if s not in dead]
+        if stop_table is not None:
+            cand = stop_table[tok.view(-1)]
+            if bool(cand.any()):
+                taken = {s for s, _ in newly}
+                for s in cand.nonzero().view(-1).tolist():
+                    if s in dead or s in taken:
+                        continue
+                    text = tokenizer.decode(out_tok[s, :t + 1].tolist(), skip_special_tokens=True)
+                    if find_stop(text, params.stop) is not None:
+                        newly.append((s, "stop"))
+        if t in limit_steps:
+            slot_of = {r: s for s, r in enumerate(slot_row[:Bact])}
+            taken = {s for s, _ in newly}
+            newly += [(slot_of[r], "length") for r in limit_steps[t] if r in slot_of and slot_of[r] not in dead
+                      and slot_of[r] not in taken]
+        for s, why in newly:
+            dead.add(s)
+            length[slot_row[s]] = t + 1
+            reason[slot_row[s]] = why
+        alive_n = Bact - len(dead)
+        if alive_n == 0 or t == steps - 1:
+            break
+        if dead and len(dead) >= max(1, Bact // 8):
+            # Drop finished rows: the last live slots move into the holes (see backends.LeanLlama.select).
+            retire(sorted(dead))
+            n_new = alive_n
+            holes = [s for s in sorted(dead) if s < n_new]
+            movers = [s for s in range(n_new, Bact) if s not in dead]
+            order = list(range(n_new))
+            for h, m in zip(holes, movers):
+                order[h] = m
+            fwd.select(order, Tp + t)
+            if holes:
+                o = torch.tensor(order, dtype=torch.long, device=dev)
+                tok = tok.index_select(0, o)
+                next_pos = next_pos.index_select(0, o)
+                for buf in (u_all, out_tok, out_lp, out_pol):
+                    buf[:n_new] = buf.index_select(0, o)
+            else:
+                tok, next_pos = tok[:n_new], next_pos[:n_new]
+            slot_row = [slot_row[o] for o in order]
+            Bact = n_new
+            dead = set()
+    retire(list(range(Bact)))
+    for r in range(B):
+        if length[r] == 0:  # still alive at the end: reached its budget
+            length[r] = row_limit[r]
+    tok_l, lp_l, pol_l = fin_tok.tolist(), fin_lp.tolist(), fin_pol.tolist()
+    for r, key in enumerate(rows):
+        k = length[r]
+        results[key] = (tok_l[r][:k], lp_l[r][:k], pol_l[r][:k], reason[r])
+
+
+def _finish(results, ids, texts, params: SamplingParams, tokenizer) -> list[Rollout]:
+    keys = sorted(results)
+    decode = (lambda seqs: tokenizer.batch_decode(seqs, skip_special_tokens=True)) if tokenizer is not None \
+        else (lambda seqs: [""] * len(seqs))
+    full = decode([results[k][0] for k in keys])
+    out = []
+    for key, text in zip(keys, full):
+        toks, lp, pol, why = results[key]
+        if params.stop:
+            hit = find_stop(text, params.stop)
+            if hit is not None:
+                # Shortest token prefix whose text already contains a stop string.
+                lo, hi = 1, len(toks)
+                while lo < hi:
+                    mid = (lo + hi) // 2
+                    if find_stop(tokenizer.decode(toks[:mid], skip_special_tokens=True), params.stop) is not None:
+                        hi = mid
+                    else:
+                        lo = mid + 1
+                toks, lp, pol, why = toks[:lo], lp[:lo], pol[:lo], "stop"
+                text = tokenizer.decode(toks, skip_special_tokens=True)
+                at, s = find_stop(text, params.stop)
+                text = text[:at + len(s)] if params.include_stop else text[:at]
+        i, j = key
+        out.append(Rollout(prompt_ids=list(ids[i]), completion_ids=toks, logprobs=lp, policy_logprobs=pol,
+                           finish_reason=why, text=text, prompt_index=i, sample_index=j, prompt=texts[i]))
+    return out

@@ -1,0 +1,220 @@
+"""Numeric tests of posttrain.advantages: a hand-computed case per function, then properties."""
+import math
+
+import pytest
+import torch
+
+from posttrain import advantages as adv_mod
+from posttrain.advantages import (
+    AdaptiveKLController,
+    FixedKLController,
+    gae,
+    group_advantages,
+    rewards_with_kl,
+    zero_variance_groups,
+)
+
+NAN = float("nan")
+
+
+# ----------------------------------------------------------------------------- GAE
+def test_gae_hand_computed_unequal_lengths():
+    # RolloutBatch layout: column 0 is a prompt token, row 1 ends one column early (padding).
+    # NaN in masked columns proves they are never read.
+    mask = torch.tensor([[0, 1, 1, 1], [0, 1, 1, 0]], dtype=torch.bool)
+    rewards = torch.tensor([[NAN, 0.0, 0.0, 1.0], [NAN, -0.1, 2.0, NAN]])
+    values = torch.tensor([[NAN, 0.5, 0.4, 0.2], [NAN, 1.0, 0.5, NAN]])
+    a, r = gae(rewards, values, mask, gamma=0.9, lam=0.5)  # gamma * lam = 0.45
+    # row 0, backwards:
+    #   t3: delta = 1 + 0.9*0 - 0.2 = 0.8                 A = 0.8
+    #   t2: delta = 0 + 0.9*0.2 - 0.4 = -0.22             A = -0.22 + 0.45*0.8 = 0.14
+    #   t1: delta = 0 + 0.9*0.4 - 0.5 = -0.14             A = -0.14 + 0.45*0.14 = -0.077
+    # row 1 (last valid token t2, nothing bootstrapped from the padding):
+    #   t2: delta = 2 - 0.5 = 1.5                         A = 1.5
+    #   t1: delta = -0.1 + 0.9*0.5 - 1.0 = -0.65          A = -0.65 + 0.45*1.5 = 0.025
+    torch.testing.assert_close(a, torch.tensor([[0.0, -0.077, 0.14, 0.8], [0.0, 0.025, 1.5, 0.0]]))
+    # returns = A + V: [0.423, 0.54, 1.0], [1.025, 2.0]
+    torch.testing.assert_close(r, torch.tensor([[0.0, 0.423, 0.54, 1.0], [0.0, 1.025, 2.0, 0.0]]))
+
+
+def test_gae_lambda_one_gamma_one_is_reward_to_go_minus_value():
+    g = torch.Generator().manual_seed(0)
+    B, T = 3, 6
+    lengths = torch.tensor([6, 4, 1])
+    mask = torch.arange(T)[None, :] < lengths[:, None]  # right-padded
+    rewards, values = torch.randn(B, T, generator=g), torch.randn(B, T, generator=g)
+    a, r = gae(rewards, values, mask, gamma=1.0, lam=1.0)
+    to_go = (rewards * mask).flip(-1).cumsum(-1).flip(-1)  # sum_{s >= t, valid} r_s
+    torch.testing.assert_close(a, (to_go - values) * mask)
+    torch.testing.assert_close(r, to_go * mask)  # returns = reward-to-go
+
+
+def test_gae_lambda_zero_is_one_step_td_error():
+    g = torch.Generator().manual_seed(1)
+    rewards, values = torch.randn(2, 5, generator=g), torch.randn(2, 5, generator=g)
+    mask = torch.tensor([[1, 1, 1, 1, 1], [1, 1, 1, 0, 0]], dtype=torch.bool)
+    a, _ = gae(rewards, values, mask, gamma=0.8, lam=0.0)
+    next_v = torch.cat([values[:, 1:] * mask[:, 1:], torch.zeros(2, 1)], dim=1)  # 0 after the last token
+    torch.testing.assert_close(a, (rewards + 0.8 * next_v - values) * mask)
+
+
+def test_gae_skips_holes_and_ignores_grad():
+    # a masked column inside a completion is stepped over: same as the compacted row
+    rewards = torch.tensor([[0.3, NAN, -0.2, 1.0]])
+    values = torch.tensor([[0.1, NAN, 0.6, 0.2]], requires_grad=True)
+    a, r = gae(rewards, values, torch.tensor([[1, 0, 1, 1]], dtype=torch.bool), gamma=0.7, lam=0.9)
+    ac, rc = gae(rewards[:, [0, 2, 3]], values.detach()[:, [0, 2, 3]], torch.ones(1, 3, dtype=torch.bool), gamma=0.7, lam=0.9)
+    torch.testing.assert_close(a[:, [0, 2, 3]], ac)
+    torch.testing.assert_close(r[:, [0, 2, 3]], rc)
+    assert a[0, 1] == 0 and r[0, 1] == 0
+    assert not a.requires_grad and not r.requires_grad  # constants of the update
+
+
+# ----------------------------------------------------------------------------- RLHF reward
+def test_rewards_with_kl_hand_computed():
+    mask = torch.tensor([[0, 1, 1, 1], [0, 1, 1, 0]], dtype=torch.bool)
+    kl = torch.tensor([[9.0, 0.1, 0.2, 0.3], [9.0, 0.5, -0.2, 9.0]])
+    score = torch.tensor([1.0, -2.0])
+    r = rewards_with_kl(score, kl, mask, kl_coef=0.1)
+    # -0.1 * KL at every completion token, + score at the last one:
+    #   row 0: [0, -0.01, -0.02, -0.03 + 1 = 0.97];  row 1: [0, -0.05, +0.02 - 2 = -1.98, 0]
+    torch.testing.assert_close(r, torch.tensor([[0.0, -0.01, -0.02, 0.97], [0.0, -0.05, -1.98, 0.0]]))
+    # the total reward of a row is score - kl_coef * sum KL
+    torch.testing.assert_close(r.sum(-1), score - 0.1 * (kl * mask).sum(-1))
+
+
+def test_rewards_with_kl_rejects_empty_completion():
+    with pytest.raises(ValueError, match="rows \\[1\\]"):
+        rewards_with_kl(torch.zeros(2), torch.zeros(2, 3), torch.tensor([[1, 1, 0], [0, 0, 0]]), kl_coef=0.1)
+
+
+# ----------------------------------------------------------------------------- group advantages
+# N = 6, K = 3: group 0 = [3, 0, 0] (mean 1, centred [2, -1, -1], unbiased std sqrt(6/2) = sqrt(3)),
+#               group 1 = [4, 4, 4] (zero variance)
+REWARDS = torch.tensor([3.0, 0.0, 0.0, 4.0, 4.0, 4.0])
+
+
+def test_grpo_hand_computed():
+    # group std: [2, -1, -1] / sqrt(3) = [1.1547005, -0.5773503, -0.5773503]; zero-variance group -> 0
+    s3 = math.sqrt(3)
+    torch.testing.assert_close(
+        group_advantages(REWARDS, 3, estimator="grpo", std_scale="group"),
+        torch.tensor([2 / s3, -1 / s3, -1 / s3, 0.0, 0.0, 0.0]), rtol=1e-5, atol=1e-6,
+    )
+    # none (Dr. GRPO): mean-centred only
+    torch.testing.assert_close(
+        group_advantages(REWARDS, 3, estimator="grpo", std_scale="none"), torch.tensor([2.0, -1.0, -1.0, 0.0, 0.0, 0.0])
+    )
+    # batch: std of the raw rewards, mean 2.5, deviations [.5, -2.5, -2.5, 1.5, 1.5, 1.5],
+    # sum of squares 19.5, / 5 = 3.9, std 1.9748418 -> [1.0127394, -0.5063697, -0.5063697, 0, 0, 0]
+    sb = math.sqrt(3.9)
+    torch.testing.assert_close(
+        group_advantages(REWARDS, 3, estimator="grpo", std_scale="batch"),
+        torch.tensor([2 / sb, -1 / sb, -1 / sb, 0.0, 0.0, 0.0]), rtol=1e-5, atol=1e-6,
+    )
+
+
+def test_rloo_hand_computed():
+    # r_i - mean of the others: 3 - (0+0)/2 = 3; 0 - (3+0)/2 = -1.5; -1.5; constant group -> 0
+    torch.testing.assert_close(
+        group_advantages(REWARDS, 3, estimator="rloo", std_scale="none"), torch.tensor([3.0, -1.5, -1.5, 0.0, 0.0, 0.0])
+    )
+    # / group std sqrt(3): [1.7320508, -0.8660254, -0.8660254]
+    s3 = math.sqrt(3)
+    torch.testing.assert_close(
+        group_advantages(REWARDS, 3, estimator="rloo", std_scale="group"),
+        torch.tensor([3 / s3, -1.5 / s3, -1.5 / s3, 0.0, 0.0, 0.0]), rtol=1e-5, atol=1e-6,
+    )
+
+
+def test_reinforce_pp_hand_computed():
+    # K > 1 (w/ baseline): centred by group [2, -1, -1, 0, 0, 0] (batch mean 0),
+    # std of the centred values sqrt(6/5) = 1.0954451 -> [1.8257419, -0.9128709, -0.9128709, 0, 0, 0]
+    s = math.sqrt(1.2)
+    torch.testing.assert_close(
+        group_advantages(REWARDS, 3, estimator="reinforce_pp", std_scale="batch"),
+        torch.tensor([2 / s, -1 / s, -1 / s, 0.0, 0.0, 0.0]), rtol=1e-5, atol=1e-6,
+    )
+    # K = 1: [1, 2, 3, 6] - mean 3 = [-2, -1, 0, 3], std sqrt(14/3) = 2.1602469
+    s1 = math.sqrt(14 / 3)
+    torch.testing.assert_close(
+        group_advantages(torch.tensor([1.0, 2.0, 3.0, 6.0]), 1, estimator="reinforce_pp", std_scale="batch"),
+        torch.tensor([-2 / s1, -1 / s1, 0.0, 3 / s1]), rtol=1e-5, atol=1e-6,
+    )
+
+
+def test_group_advantages_properties():
+    g = torch.Generator().manual_seed(0)
+    r = torch.randn(4 * 5, generator=g)  # 5 groups of K = 4
+    # RLOO = K/(K-1) * mean-centred; GRPO/RLOO advantages sum to 0 in each group
+    rloo = group_advantages(r, 4, estimator="rloo", std_scale="none")
+    torch.testing.assert_close(rloo, 4 / 3 * group_advantages(r, 4, estimator="grpo", std_scale="none"))
+    for est in ("grpo", "rloo"):
+        for scale in ("group", "batch", "none"):
+            a = group_advantages(r, 4, estimator=est, std_scale=scale).view(5, 4)
+            torch.testing.assert_close(a.sum(1), torch.zeros(5), atol=1e-5, rtol=0)
+    # GRPO group z-scores have unit (unbiased) std in every group
+    z = group_advantages(r, 4, estimator="grpo", std_scale="group").view(5, 4)
+    torch.testing.assert_close(z.std(1), torch.ones(5), rtol=1e-4, atol=0)
+    # REINFORCE++ advantages have zero mean and unit std over the batch
+    rpp = group_advantages(r, 4, estimator="reinforce_pp", std_scale="batch")
+    assert rpp.mean().abs().item() < 1e-6 and rpp.std().item() == pytest.approx(1.0, rel=1e-4)
+    # RLOO of a constant group is 0; GRPO of an all-constant batch is 0 without NaN
+    const = torch.full((6,), 0.7)
+    for est, scale in [("rloo", "none"), ("grpo", "group"), ("grpo", "batch"), ("reinforce_pp", "batch")]:
+        a = group_advantages(const, 3, estimator=est, std_scale=scale)
+        assert torch.isfinite(a).all() and a.abs().max().item() < 1e-6, (est, scale)
+
+
+def test_group_advantages_rejects_bad_arguments():
+    with pytest.raises(ValueError, match="group_size=4"):
+        group_advantages(REWARDS, 4, estimator="grpo", std_scale="group")
+    with pytest.raises(ValueError, match="std_scale='batch'"):
+        group_advantages(REWARDS, 3, estimator="reinforce_pp", std_scale="group")
+    with pytest.raises(ValueError, match="group_size >= 2"):
+        group_advantages(REWARDS, 1, estimator="rloo", std_scale="none")
+    with pytest.raises(ValueError, match="estimator"):
+        group_advantages(REWARDS, 3, estimator="ppo", std_scale="none")
+
+
+def test_zero_variance_groups():
+    assert zero_variance_groups(REWARDS, 3).tolist() == [False, True]
+    assert zero_variance_groups(torch.tensor([1.0, 1.0, 0.0, 1.0, 0.0, 0.0]), 2).tolist() == [True, False, True]
+    with pytest.raises(ValueError):
+        zero_variance_groups(REWARDS, 4)
+
+
+# ----------------------------------------------------------------------------- KL controllers
+def test_adaptive_kl_controller_hand_computed_and_direction():
+    ctl = AdaptiveKLController(init_kl_coef=0.2, target=6.0, horizon=10000)
+    ctl.update(current_kl=9.0, n_steps=256)
+    # e = clip(9/6 - 1 = 0.5, -0.2, 0.2) = 0.2: 0.2 * (1 + 0.2 * 256/10000) = 0.2 * 1.00512
+    assert ctl.value == pytest.approx(0.201024)
+    ctl.update(current_kl=5.4, n_steps=1000)
+    # e = 5.4/6 - 1 = -0.1: 0.201024 * (1 - 0.1 * 0.1) = 0.19901376
+    assert ctl.value == pytest.approx(0.19901376)
+    before = ctl.value
+    ctl.update(current_kl=6.0, n_steps=1000)  # at target: unchanged
+    assert ctl.value == pytest.approx(before)
+    ctl.update(current_kl=100.0, n_steps=1000)  # above target: up
+    assert ctl.value > before
+    up = ctl.value
+    ctl.update(current_kl=0.0, n_steps=1000)  # below target: down, by at most 20% per horizon
+    assert up * (1 - 0.2 * 0.1) == pytest.approx(ctl.value)
+    fresh = AdaptiveKLController(0.5, 6.0, 10000)
+    fresh.load_state_dict(ctl.state_dict())
+    assert fresh.value == ctl.value
+
+
+def test_fixed_kl_controller():
+    ctl = FixedKLController(0.05)
+    ctl.update(100.0, 512)
+    assert ctl.value == 0.05
+    other = FixedKLController(1.0)
+    other.load_state_dict(ctl.state_dict())
+    assert other.value == 0.05
+
+
+def test_module_has_no_second_masked_mean():
+    # masked means / whitening live in posttrain.logprobs only
+    assert not any(name.startswith(("masked", "whiten")) for name in vars(adv_mod))

@@ -1,0 +1,371 @@
+"""posttrain.rollout: lean path == HF forward, greedy == model.generate, log-probs, finishing, seeding,
+top-k / top-p, errors, save / load."""
+from __future__ import annotations
+
+import json
+import random
+
+import pytest
+import torch
+
+from posttrain.logprobs import batched_logprobs
+from posttrain.models import build_model, train_tokenizer
+from posttrain.rollout import (
+    LeanLlama,
+    Rollout,
+    SamplingParams,
+    collate_rollouts,
+    generate,
+    load_rollouts,
+    row_uniforms,
+    save_rollouts,
+    select_backend,
+)
+from posttrain.rollout.sampling import Sampler
+
+NAMES = "anna bob carl dora eve finn gus hana ivan jade".split()
+COLORS = "red blue green pink gold gray".split()
+THINGS = "cats dogs boats kites lamps maps".split()
+
+
+def _sentence(rng: random.Random) -> str:
+    return (f"{rng.choice(NAMES)} likes {rng.choice(COLORS)} {rng.choice(THINGS)} and "
+            f"{rng.choice(NAMES)} has {rng.randint(2, 99)} {rng.choice(THINGS)}.")
+
+
+@pytest.fixture(scope="module")
+def trained():
+    """A tiny model trained for a few seconds on templated sentences: varied greedy text, healthy margins."""
+    rng = random.Random(0)
+    corpus = [" ".join(_sentence(rng) for _ in range(3)) for _ in range(200)]
+    tok = train_tokenizer(corpus, vocab_size=256)
+    model = build_model("tiny", tok, seed=0)
+    data = torch.tensor([(tok(c)["input_ids"] + [tok.eos_token_id])[:40] for c in corpus])
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-2)
+    g = torch.Generator().manual_seed(0)
+    model.train()
+    for _ in range(60):
+        batch = data[torch.randint(0, len(data), (16,), generator=g)]
+        loss = model(input_ids=batch, labels=batch).loss
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    prompts = [_sentence(rng)[: rng.randint(4, 30)] for _ in range(6)]
+    return model, tok, prompts
+
+
+def _left_pad(seqs):
+    T = max(map(len, seqs))
+    ids = torch.zeros(len(seqs), T, dtype=torch.long)
+    am = torch.zeros(len(seqs), T, dtype=torch.long)
+    for i, s in enumerate(seqs):
+        ids[i, T - len(s):] = torch.tensor(s)
+        am[i, T - len(s):] = 1
+    return ids, am
+
+
+# ------------------------------------------------------------------ lean path == HF forward
+
+
+def _tiny_config_model(kind: str):
+    from transformers import LlamaConfig, LlamaForCausalLM, MistralConfig, MistralForCausalLM, Qwen2Config, \
+        Qwen2ForCausalLM
+
+    common = dict(vocab_size=97, hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
+                  max_position_embeddings=128, pad_token_id=0, eos_token_id=1, bos_token_id=2)
+    if kind == "llama-gqa-scaled-rope":
+        cfg = LlamaConfig(num_key_value_heads=2, rope_parameters={"rope_type": "linear", "factor": 2.0,
+                                                                 "rope_theta": 500.0}, **common)
+        cls = LlamaForCausalLM
+    elif kind == "mistral":
+        cfg, cls = MistralConfig(num_key_value_heads=2, sliding_window=None, **common), MistralForCausalLM
+    else:
+        cfg, cls = Qwen2Config(num_key_value_heads=4, **common), Qwen2ForCausalLM
+    torch.manual_seed(0)
+    model = cls(cfg).eval()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.mul_(10.0 if p.dim() == 1 and p.numel() != 64 else 3.0)  # larger activations than the init
+    return model
+
+
+@pytest.mark.parametrize("kind", ["tiny", "llama-gqa-scaled-rope", "mistral", "qwen2"])
+def test_lean_logits_match_hf_prefill_and_decode(kind, trained):
+    model = trained[0] if kind == "tiny" else _tiny_config_model(kind)
+    ok, why = select_backend(model, 64)[1], None
+    assert "lean" in ok
+    V = model.config.vocab_size
+    g = torch.Generator().manual_seed(1)
+    seqs = [torch.randint(3, V, (n,), generator=g).tolist() for n in (5, 11, 8)]
+    ids, am = _left_pad(seqs)
+    pos = (am.cumsum(-1) - 1).clamp(min=0)
+    B, T = ids.shape
+    nxt = torch.randint(3, V, (B, 4), generator=g)
+    ids2, am2 = torch.cat([ids, nxt], 1), torch.cat([am, torch.ones(B, 4, dtype=am.dtype)], 1)
+    pos2 = (am2.cumsum(-1) - 1).clamp(min=0)
+    with torch.no_grad():
+        ref = model(input_ids=ids2, attention_mask=am2, position_ids=pos2).logits  # (B, T+4, V)
+    lean = LeanLlama(model)
+    with torch.inference_mode():
+        lean.start(B, T + 4, T + 8)
+        got = lean.prefill(ids, am.bool(), pos, torch.arange(B))
+        torch.testing.assert_close(got, ref[:, T - 1], atol=1e-4, rtol=0)
+        for s in range(4):
+            got = lean.decode(nxt[:, s:s + 1], pos2[:, T + s], T + s)
+            torch.testing.assert_close(got, ref[:, T + s], atol=1e-4, rtol=0)
+
+
+def test_backend_selection_reasons(trained):
+    model = trained[0]
+    assert select_backend(model, 64)[0].name == "lean"
+    assert select_backend(model, 64, "hf")[0].name == "hf"
+    bf16 = build_model("tiny", trained[1], dtype=torch.bfloat16)
+    fwd, why = select_backend(bf16, 64)
+    assert fwd.name == "hf" and "fp32" in why
+    with pytest.raises(ValueError, match="cannot run this model"):
+        select_backend(bf16, 64, "lean")
+
+
+# ------------------------------------------------------------------ greedy == model.generate
+
+
+@pytest.mark.parametrize("backend", ["lean", "hf"])
+def test_greedy_matches_hf_generate(trained, backend):
+    model, tok, prompts = trained
+    enc = tok(prompts, return_tensors="pt", padding=True)
+    with torch.no_grad():
+        out = model.generate(**enc, do_sample=False, max_new_tokens=20, pad_token_id=tok.pad_token_id,
+                             eos_token_id=tok.eos_token_id, output_scores=True, return_dict_in_generate=True)
+    top2 = torch.stack([s.topk(2, -1).values for s in out.scores], 1)  # (B, steps, 2)
+    T = enc.input_ids.shape[1]
+    rollouts = generate(model, tok, prompts, greedy=True, max_new_tokens=20, backend=backend)
+    assert len({r.text for r in rollouts}) > 1  # a meaningful comparison: the prompts continue differently
+    for i, r in enumerate(rollouts):
+        ref = out.sequences[i, T:].tolist()
+        n = len(r.completion_ids)
+        margin = (top2[i, :n, 0] - top2[i, :n, 1]).min().item()
+        assert margin > 1e-4, "near-tie in greedy path; pick other prompts"
+        assert r.completion_ids == ref[:n], (prompts[i], r.text)
+        if r.finish_reason == "eos":
+            assert r.completion_ids[-1] == tok.eos_token_id and all(t == tok.pad_token_id for t in ref[n:])
+        else:
+            assert r.finish_reason == "length" and n == 20
+        assert r.text == tok.decode(r.completion_ids, skip_special_tokens=True)
+        assert r.logprobs == [0.0] * n  # greedy: the sampling distribution is a point mass
+
+
+def test_top_k_1_is_greedy(trained):
+    model, tok, prompts = trained
+    a = generate(model, tok, prompts, greedy=True, max_new_tokens=12)
+    b = generate(model, tok, prompts, top_k=1, temperature=1.3, max_new_tokens=12, seed=5)
+    assert [r.completion_ids for r in a] == [r.completion_ids for r in b]
+
+
+# ------------------------------------------------------------------ log-probs
+
+
+def test_sampling_logprobs_match_recomputed(trained):
+    model, tok, prompts = trained
+    for params in (dict(temperature=1.0), dict(temperature=0.7), dict(temperature=0.9, top_p=0.8)):
+        rollouts = generate(model, tok, prompts, n=2, max_new_tokens=16, seed=3, **params)
+        batch = collate_rollouts(rollouts, tok.pad_token_id)
+        policy, _ = batched_logprobs(model, batch, micro_batch_size=4)
+        torch.testing.assert_close(policy * batch.completion_mask, batch.policy_logprobs, atol=1e-4, rtol=0)
+        if "top_p" not in params:  # unfiltered: the sampler's distribution is softmax(logits / T)
+            sampled, _ = batched_logprobs(model, batch, micro_batch_size=4, temperature=params["temperature"])
+            torch.testing.assert_close(sampled * batch.completion_mask, batch.logprobs, atol=1e-4, rtol=0)
+        else:  # renormalised over the nucleus: never below the unfiltered log-prob
+            assert (batch.logprobs >= batch.policy_logprobs - 1e-4).all()
+
+
+# ------------------------------------------------------------------ finishing: EOS, stop strings, length
+
+
+def test_eos_and_stop_strings(trained):
+    model, tok, prompts = trained
+    base = generate(model, tok, prompts, greedy=True, max_new_tokens=24)
+    # EOS: declare a token the greedy path emits to be an EOS (via the generation config).
+    r0 = next(r for r in base if len(set(r.completion_ids)) > 3)
+    k = 3
+    eos_like = r0.completion_ids[k]
+    k = r0.completion_ids.index(eos_like)
+    old = model.generation_config.eos_token_id
+    model.generation_config.eos_token_id = [tok.eos_token_id, eos_like]
+    try:
+        got = generate(model, tok, [r0.prompt_ids], greedy=True, max_new_tokens=24)[0]
+    finally:
+        model.generation_config.eos_token_id = old
+    assert got.finish_reason == "eos" and got.completion_ids == r0.completion_ids[:k + 1]
+    assert got.completion_mask == [1] * (k + 1)
+
+    # Stop strings: cut at the first occurrence, excluded from text by default, included on request.
+    text = r0.text
+    stop = text[6:9]
+    assert stop and stop in text
+    at = text.index(stop)
+    for include in (False, True):
+        r = generate(model, tok, [r0.prompt_ids], greedy=True, max_new_tokens=24, stop=[stop, "\x00never"],
+                     include_stop=include)[0]
+        assert r.finish_reason == "stop"
+        assert r.text == (text[:at + len(stop)] if include else text[:at])
+        assert r.completion_ids == r0.completion_ids[:len(r.completion_ids)]
+        full = tok.decode(r.completion_ids, skip_special_tokens=True)
+        assert stop in full and stop not in tok.decode(r.completion_ids[:-1], skip_special_tokens=True)
+    # Rows without the stop string run to the length limit; the batch mask covers exactly the tokens.
+    many = generate(model, tok, prompts, greedy=True, max_new_tokens=24, stop=[stop])
+    batch = collate_rollouts(many, tok.pad_token_id)
+    for i, r in enumerate(many):
+        assert r.finish_reason in ("stop", "length", "eos")
+        assert int(batch.completion_mask[i].sum()) == len(r.completion_ids)
+        assert batch.completion_ids[i, :len(r.completion_ids)].tolist() == r.completion_ids
+
+
+def test_context_limit_clips_completion():
+    tok = train_tokenizer(["a b c d e f g h"] * 20, vocab_size=64)
+    model = build_model("tiny", tok, seed=0)  # context 512
+    r = generate(model, tok, [[5] * 509], max_new_tokens=10, ignore_eos=True)[0]
+    assert r.finish_reason == "length" and len(r.completion_ids) == 3
+    with pytest.raises(ValueError, match="context is 512"):
+        generate(model, tok, [[5] * 512], max_new_tokens=1)
+
+
+# ------------------------------------------------------------------ seeding and batch invariance
+
+
+def test_same_seed_same_samples_and_batch_invariance(trained):
+    model, tok, prompts = trained
+    kw = dict(n=3, max_new_tokens=16, temperature=1.0, seed=11)
+    a = generate(model, tok, prompts, **kw)
+    b = generate(model, tok, prompts, **kw)
+    assert [r.completion_ids for r in a] == [r.completion_ids for r in b]
+    c = generate(model, tok, prompts, **{**kw, "seed": 12})
+    assert [r.completion_ids for r in a] != [r.completion_ids for r in c]
+    # Another batch composition: a subset of prompts, reversed, keyed by their original index, tiny
+    # micro-batches (one row each), fewer samples, through the HF forward.
+    sub = [4, 1, 0]
+    for extra in (dict(max_batch_tokens=1), dict(backend="hf"), dict(n=2)):
+        d = generate(model, tok, [prompts[i] for i in sub], prompt_keys=sub, **{**kw, **extra})
+        for r in d:
+            ref = a[sub[r.prompt_index] * 3 + r.sample_index]
+            assert r.completion_ids == ref.completion_ids
+            torch.testing.assert_close(torch.tensor(r.policy_logprobs), torch.tensor(ref.policy_logprobs),
+                                       atol=1e-4, rtol=0)
+
+
+def test_finished_rows_dropped_do_not_change_others(trained):
+    """Rows end at different steps (EOS = a frequent token): each row equals its own solo run."""
+    model, tok, prompts = trained
+    frequent = tok(" ")["input_ids"][0]
+    old = model.generation_config.eos_token_id
+    model.generation_config.eos_token_id = [tok.eos_token_id, frequent]
+    try:
+        many = generate(model, tok, prompts * 3, max_new_tokens=20, seed=2, temperature=1.2)
+        assert len({len(r.completion_ids) for r in many}) > 2
+        for i in (0, 7, 13):
+            solo = generate(model, tok, [prompts[i % len(prompts)]], prompt_keys=[i], max_new_tokens=20, seed=2,
+                            temperature=1.2)[0]
+            assert solo.completion_ids == many[i].completion_ids and solo.finish_reason == many[i].finish_reason
+    finally:
+        model.generation_config.eos_token_id = old
+
+
+# ------------------------------------------------------------------ top-k / top-p distribution
+
+
+def test_top_k_top_p_distribution():
+    probs = torch.tensor([0.4, 0.25, 0.15, 0.1, 0.06, 0.04])
+    logits = probs.log().expand(40000, -1).contiguous()
+    u = row_uniforms(7, torch.arange(40000), torch.zeros(40000, dtype=torch.long), 1)  # (R, 1)
+    cases = [
+        (dict(), probs),
+        (dict(top_k=3), torch.tensor([0.4, 0.25, 0.15, 0, 0, 0]) / 0.8),
+        (dict(top_p=0.7), torch.tensor([0.4, 0.25, 0.15, 0, 0, 0]) / 0.8),  # mass before 3rd = 0.65 < 0.7
+        (dict(top_p=0.65), torch.tensor([0.4, 0.25, 0, 0, 0, 0]) / 0.65),
+        (dict(top_k=4, top_p=0.5), torch.tensor([0.4, 0.25, 0, 0, 0, 0]) / 0.65),
+        (dict(temperature=0.5), probs ** 2 / (probs ** 2).sum()),
+    ]
+    for kw, expected in cases:
+        tok, logp, policy = Sampler(SamplingParams(**kw), 6)(logits, u)
+        freq = torch.bincount(tok.view(-1), minlength=6).float() / len(tok)
+        torch.testing.assert_close(freq, expected, atol=0.01, rtol=0, msg=str(kw))
+        assert (freq[expected == 0] == 0).all(), kw
+        torch.testing.assert_close(logp.view(-1), expected.log()[tok.view(-1)], atol=1e-5, rtol=0)
+        torch.testing.assert_close(policy.view(-1), probs.log()[tok.view(-1)], atol=1e-5, rtol=0)
+
+
+def test_uniforms_are_uniform_and_independent():
+    u = row_uniforms(0, torch.arange(2000), torch.arange(2000) % 4, 50)  # (2000, 50)
+    assert 0 <= u.min() and u.max() < 1
+    assert abs(u.mean().item() - 0.5) < 0.01 and abs(u.var().item() - 1 / 12) < 0.005
+    hist = torch.histc(u, bins=10, min=0, max=1) / u.numel()
+    assert (hist - 0.1).abs().max() < 0.01
+    corr = torch.corrcoef(torch.stack([u[:, :-1].reshape(-1), u[:, 1:].reshape(-1)]))[0, 1]
+    assert abs(corr.item()) < 0.02
+    assert not torch.equal(row_uniforms(1, torch.arange(5), torch.zeros(5), 3), row_uniforms(0, torch.arange(5),
+                                                                                            torch.zeros(5), 3))
+
+
+# ------------------------------------------------------------------ errors
+
+
+@pytest.mark.parametrize("prompts, kw, match", [
+    ([""], {}, "prompt 0 is empty"),
+    ([[]], {}, "prompt 0 is empty"),
+    (["hi", [3] * 600], {}, "prompt 1 has 600 tokens but the model's context is 512"),
+    (["hi"], dict(n=0), "n must be"),
+    (["hi"], dict(temperature=-1.0), "temperature"),
+    (["hi"], dict(top_p=0.0), "top_p"),
+    (["hi"], dict(top_p=1.5), "top_p"),
+    (["hi"], dict(top_k=-2), "top_k"),
+    (["hi"], dict(max_new_tokens=0), "max_new_tokens"),
+    (["hi"], dict(stop="\n"), "stop"),
+    (["hi"], dict(nucleus=0.9), "unknown sampling option"),
+    ([[10 ** 6]], {}, "outside"),
+    ("hi", {}, "list of strings"),
+])
+def test_bad_inputs_raise_one_line_errors(trained, prompts, kw, match):
+    model, tok, _ = trained
+    with pytest.raises(ValueError, match=match) as e:
+        generate(model, tok, prompts, **kw)
+    assert "\n" not in str(e.value)
+
+
+def test_empty_prompt_list_returns_nothing(trained):
+    assert generate(trained[0], trained[1], []) == []
+
+
+# ------------------------------------------------------------------ records: collate, save / load
+
+
+@pytest.mark.parametrize("suffix", [".jsonl", ".parquet"])
+def test_save_load_round_trip(trained, tmp_path, suffix):
+    model, tok, prompts = trained
+    rollouts = generate(model, tok, prompts[:3], n=2, max_new_tokens=8, seed=1)
+    rollouts[0].reward = 1.0
+    rollouts[1].extras = {"verifier": "math", "details": {"answer": "4", "ok": True}}
+    rollouts[2].completion_mask = [0] * len(rollouts[2].completion_ids)
+    path = save_rollouts(rollouts, tmp_path / f"r{suffix}")
+    back = load_rollouts(path)
+    assert back == rollouts
+    if suffix == ".jsonl":
+        row = json.loads(path.read_text().splitlines()[1])
+        assert json.loads(row["extras_json"])["details"]["ok"] is True
+
+
+def test_collate_layout(trained):
+    model, tok, prompts = trained
+    rollouts = generate(model, tok, prompts[:3], max_new_tokens=6, seed=0)
+    for r in rollouts:
+        r.reward = float(len(r.text))
+    b = collate_rollouts(rollouts, tok.pad_token_id)
+    P = max(len(r.prompt_ids) for r in rollouts)
+    assert b.prompt_length == P and b.input_ids.shape[1] == P + max(len(r.completion_ids) for r in rollouts)
+    for i, r in enumerate(rollouts):
+        assert b.input_ids[i, P - len(r.prompt_ids):P].tolist() == r.prompt_ids
+        assert b.attention_mask[i].sum() == len(r.prompt_ids) + len(r.completion_ids)
+        assert b.logprobs[i, P:P + len(r.logprobs)].tolist() == pytest.approx(r.logprobs)
+    assert b.rewards.tolist() == [float(len(r.text)) for r in rollouts]
+    assert len(b.select([0, 2])) == 2
+    with pytest.raises(ValueError, match="same length"):
+        Rollout([1], [2, 3], [0.0], [0.0], "length", "x", 0, 0)
