@@ -38,34 +38,43 @@ class EvalConfig:
 
 
 # ----------------------------------------------------------------------------- stages
-def _sft_stage():
-    from posttrain.trainers import sft
-
-    return sft.SFTConfig, _run_sft
-
-
 @dataclass
 class Stage:
+    """A stage: its config class and `train(res, ensure) -> Path`, imported on first use.
+
+    `ensure(stage)` returns the output of an earlier stage of the same recipe (e.g. the SFT
+    model directory), running that stage first if it is missing. Trainers never import this
+    module: the name-to-code mapping lives here only.
+    """
+
     name: str
     help: str
-    load: Callable[[], tuple[type, Callable[[Resolved], Any]]] = field(repr=False)
+    module: str
+    config: str
+
+    def load(self) -> tuple[type, Callable[[Resolved, Callable[[str], Path]], Any]]:
+        import importlib
+
+        mod = importlib.import_module(self.module)
+        return getattr(mod, self.config), mod.train
 
 
-def _run_sft(res: Resolved) -> Path:
-    from posttrain.trainers import sft
+STAGES: dict[str, Stage] = {
+    "sft": Stage("sft", "supervised fine-tuning (builds the base model first if needed)",
+                 "posttrain.trainers.sft", "SFTConfig"),
+    "eval": Stage("eval", "gold metrics and win-rate of a model on held-out prompts", "posttrain.cli", "EvalConfig"),
+}
 
-    base = ensure_base(res)
-    return sft.train(res, base)
 
-
-def _run_eval(res: Resolved) -> dict:
+def train(res: Resolved, ensure: Callable[[str], Path]) -> Path:
+    """The eval stage (lives here because it only glues evaluation to the run directory)."""
     from posttrain import evaluation, loop, tasks
     from posttrain.models import load_model, load_tokenizer
 
     cfg: EvalConfig = res.stage_cfg
     rows = tasks.load_split(res.task, "eval")[: cfg.rows]
-    model_dir = Path(cfg.model) if cfg.model else ensure_stage(res, "sft")
-    ref_dir = Path(cfg.reference) if cfg.reference else ensure_base(res)
+    model_dir = Path(cfg.model) if cfg.model else ensure("sft")
+    ref_dir = Path(cfg.reference) if cfg.reference else ensure("base")
     tok = load_tokenizer(model_dir)
     model = load_model(model_dir)
     ref_tok = load_tokenizer(ref_dir)
@@ -80,14 +89,7 @@ def _run_eval(res: Resolved) -> dict:
     loop.write_json(out_dir / "eval.json", {"model": str(model_dir), "reference": str(ref_dir),
                                             "metrics": {k: v for k, v in m.items() if not k.startswith("_")},
                                             "reference_metrics": {k: v for k, v in r.items() if not k.startswith("_")}})
-    return m
-
-
-STAGES: dict[str, Stage] = {
-    "sft": Stage("sft", "supervised fine-tuning (builds the base model first if needed)", _sft_stage),
-    "eval": Stage("eval", "gold metrics and win-rate of a model on held-out prompts",
-                  lambda: (EvalConfig, _run_eval)),
-}
+    return out_dir / "eval.json"
 
 
 # ----------------------------------------------------------------------------- chaining
@@ -123,16 +125,22 @@ def ensure_base(res: Resolved) -> Path:
 
 
 def ensure_stage(res: Resolved, stage: str) -> Path:
-    """`runs/<recipe>/<stage>/final`, running that stage first (with the recipe's settings) if missing."""
-    from posttrain.models import is_model_dir
+    """The output of `stage` for this recipe, running that stage first (with the recipe's settings) if missing.
 
+    A stage's output is `runs/<recipe>/<stage>/final` (a model directory or a data file),
+    complete once it exists: stages write it atomically as their last act.
+    """
+    if stage == "base":
+        return ensure_base(res)
+    if stage not in STAGES:
+        raise ValueError(f"unknown stage {stage!r}")  # our bug: trainers only ask for real stages
     final = res.stage_dir(stage) / "final"
-    if is_model_dir(final):
+    if final.exists():
         return final
-    print(f"[posttrain] {stage} model not found at {final}; running `posttrain {stage} --recipe {res.recipe}` first")
+    print(f"[posttrain] no {stage} output at {final}; running `posttrain {stage} --recipe {res.recipe}` first")
     cfg_cls, run = STAGES[stage].load()
-    run(res.for_stage(stage, cfg_cls))
-    return final
+    sub = res.for_stage(stage, cfg_cls)
+    return run(sub, lambda name: ensure_stage(sub, name))
 
 
 # ----------------------------------------------------------------------------- commands
@@ -196,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         args = p.parse_args(rest)
         res = resolve(args.recipe, cmd, cfg_cls, args.overrides)
         _quiet_libraries()
-        run(res)
+        run(res, lambda name: ensure_stage(res, name))
         return 0
     except Exception as e:  # user errors: one line, no traceback
         from posttrain.data import DataError

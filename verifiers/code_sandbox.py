@@ -117,7 +117,8 @@ Not isolated: CPU/cache timing side channels; the kernel attack surface (no secc
 filter); reading world-readable files in the bound directories (bwrap: /usr, /etc,
 interpreter prefix; rlimits mode: the whole host); in rlimits mode, disk space in the
 temp dir up to the time limit (per-file size is capped); in rlimits mode *without root*
-the candidate runs as your own user (weak; a warning says so): install bubblewrap.
+the candidate runs as your own user, and a process that calls setsid() can outlive the
+run (weak; a warning says so): install bubblewrap.
 The candidate sees each test's arguments (it must, to compute the answer).
 """
 from __future__ import annotations
@@ -1200,8 +1201,9 @@ class CodeVerifier(Verifier):
             self.mode = "rlimits"
         self._unshare = _unshare_path() if (self.mode == "rlimits" and namespaces and _probe_unshare(self._interp)) else None
         if self.mode == "rlimits" and not _is_root():
-            warnings.warn("code sandbox: no bubblewrap and not root, so candidates run as your own user with rlimits "
-                          "only (no network or filesystem isolation); install bubblewrap", RuntimeWarning, stacklevel=2)
+            warnings.warn("code sandbox: rlimits mode without root runs candidates as your own user with rlimits only "
+                          "(no network or filesystem isolation; setsid() daemons can outlive a run); use bubblewrap "
+                          "(apt-get install bubblewrap) or run as root", RuntimeWarning, stacklevel=2)
 
     # -- public -----------------------------------------------------------------------
     @property

@@ -140,23 +140,25 @@ def eval_loss(model, pairs, pad_id: int, micro_batch_size: int) -> float:
 
 
 # ----------------------------------------------------------------------------- train
-def train(res: Resolved, base_dir: Path) -> Path:
-    """Fine-tune the model in `base_dir` on the task; returns the final model directory."""
+def train(res: Resolved, ensure) -> Path:
+    """Fine-tune the base model (`ensure("base")`: a preset built from scratch or a local HF dir)
+    on the task; returns the final model directory."""
     from posttrain import evaluation, tasks
     from posttrain.models import load_model, load_tokenizer, save_model
 
     cfg: SFTConfig = res.stage_cfg
     run_dir = res.stage_dir()
+    # Data first: a bad row must stop the run before any model loads or any run dir changes.
+    train_rows = tasks.load_split(res.task, "train")
+    eval_rows = tasks.load_split(res.task, "eval")
+    base_dir = ensure("base")
+
     accelerator = loop.setup(cfg.seed, res.run.threads)
     say = print if accelerator.is_main_process else (lambda *a, **k: None)
     if accelerator.is_main_process:
         loop.prepare_run_dir(run_dir, cfg.resume, say)
         save_resolved(res, run_dir / "config.yaml")
     accelerator.wait_for_everyone()
-
-    # Data first: a bad row must stop the run before any model loads.
-    train_rows = tasks.load_split(res.task, "train")
-    eval_rows = tasks.load_split(res.task, "eval")
 
     tokenizer = load_tokenizer(base_dir)
     model = load_model(base_dir, device=accelerator.device)
