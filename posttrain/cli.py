@@ -63,6 +63,9 @@ STAGES: dict[str, Stage] = {
     "sft": Stage("sft", "supervised fine-tuning (builds the base model first if needed)",
                  "posttrain.trainers.sft", "SFTConfig"),
     "eval": Stage("eval", "gold metrics and win-rate of a model on held-out prompts", "posttrain.cli", "EvalConfig"),
+    "prefs": Stage("prefs", "preference pairs: samples of the SFT model ranked by the gold preference (or a file)", "posttrain.preferences", "PrefsConfig"),
+    "rm": Stage("rm", "reward model: Bradley-Terry on preference pairs, a scalar head on the SFT model", "posttrain.trainers.reward", "RMConfig"),
+    "dpo": Stage("dpo", "DPO / IPO / hinge on preference pairs, then gold win-rate against the SFT model", "posttrain.trainers.dpo", "DPOConfig"),
 }
 
 

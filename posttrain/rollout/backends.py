@@ -25,7 +25,6 @@ Agreement with the HF forward: within 1e-5 on fp32 logits (tested at 1e-4).
 """
 from __future__ import annotations
 
-import copy
 import math
 
 import torch
@@ -170,10 +169,6 @@ class LeanLlama:
         return self._lin(self._norm(x, self.cf), self.head_w, self.head_b)
 
     # ------------------------------------------------------------------ engine interface
-    def fork(self) -> "LeanLlama":
-        """Same weights, its own cache (for a second decode loop)."""
-        return copy.copy(self)
-
     def start(self, rows: int, cols: int, max_pos: int) -> None:
         n, Hkv, D = len(self.layers), self.Hkv, self.D
         self.k = torch.empty(n, rows, Hkv, cols, D, device=self.device, dtype=self.dtype)
@@ -315,9 +310,6 @@ class HFForward:
         self.model = model
         self.device = model_device(model)
         self.keep_kw = {"logits_to_keep": 1} if _accepts(model, "logits_to_keep") else {}
-
-    def fork(self) -> "HFForward":
-        return copy.copy(self)
 
     def start(self, rows: int, cols: int, max_pos: int) -> None:
         self.mask = torch.ones(rows, cols, dtype=torch.long, device=self.device)

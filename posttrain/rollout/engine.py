@@ -92,18 +92,16 @@ def _eos_ids(model, tokenizer) -> list[int]:
 
 def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling: SamplingParams | None = None, *,
              prompt_keys: Sequence[int] | None = None, max_batch_tokens: int = DEFAULT_MAX_BATCH_TOKENS,
-             backend: str = "auto", workers: int | None = None, **overrides) -> list[Rollout]:
+             backend: str = "auto", **overrides) -> list[Rollout]:
     """Sample `n` completions for each prompt; returns Rollouts ordered by (prompt_index, sample_index).
 
     prompts: strings (tokenized with `add_special_tokens=True`) or lists of token ids, any lengths.
     sampling: a SamplingParams; keyword `overrides` replace its fields (`generate(m, t, ps, n=4, top_p=0.9)`).
     prompt_keys: one integer per prompt that seeds its randomness (default: its index). Pass stable ids
         (e.g. dataset indices) to get the same samples whatever else is in the call.
-    max_batch_tokens: KV-cache budget for all micro-batches in flight: rows are split into micro-batches
-        with rows * (longest prompt + max_new_tokens) <= max_batch_tokens / workers (>= 1 row each).
+    max_batch_tokens: KV-cache budget; rows are split into micro-batches with
+        rows * (longest prompt + max_new_tokens) <= max_batch_tokens (at least one row each).
     backend: "auto" (lean path when supported, else HF forward), "lean" or "hf".
-    workers: decode loops run side by side on Python threads (CPU only; see `_run_workers`). None: 2 on
-        a CPU with >= 2 intra-op threads (each loop then gets half of them), else 1.
     """
     params = sampling or SamplingParams()
     if overrides:
@@ -155,41 +153,26 @@ def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling:
     eos = [] if params.ignore_eos else _eos_ids(model, tokenizer)
     pad_id = tokenizer.pad_token_id if tokenizer is not None and tokenizer.pad_token_id is not None else 0
 
-    n_workers = _resolve_workers(workers, fwd.device, len(ids) * params.n)
-    batches = plan_micro_batches([len(p) for p in ids], params.n, params.max_new_tokens,
-                                 max_batch_tokens // n_workers, n_workers)
+    batches = plan_micro_batches([len(p) for p in ids], params.n, params.max_new_tokens, max_batch_tokens)
     results: dict[tuple[int, int], tuple[list[int], list[float], list[float], str]] = {}
-    args = (sampler, params, ids, limits, keys, eos, stop_table, tokenizer, pad_id, results)
     model_was_training = getattr(model, "training", False)
     if isinstance(fwd, HFForward) and model_was_training:
         model.eval()
     try:
-        if n_workers == 1:
-            with torch.inference_mode():
-                for rows in batches:
-                    _run_micro_batch(fwd, rows, *args)
-        else:
-            _run_workers(fwd, batches, n_workers, args)
+        with torch.inference_mode():
+            for rows in batches:
+                _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_table, tokenizer, pad_id,
+                                 results)
     finally:
         if isinstance(fwd, HFForward) and model_was_training:
             model.train()
     return _finish(results, ids, texts, params, tokenizer)
 
 
-def _resolve_workers(workers: int | None, device, rows: int) -> int:
-    if workers is None:  # CPU: 2 single-threaded decode loops when there are >= 2 threads and >= 2 rows
-        if torch.device(device).type != "cpu" or torch.get_num_threads() < 2 or rows < 2:
-            return 1
-        return 2
-    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
-        raise ValueError(f"generate: workers must be a positive integer or None (auto), got {workers!r}")
-    return min(workers, max(rows, 1))
-
-
-def plan_micro_batches(lengths: list[int], n: int, max_new: int, budget: int, min_batches: int = 1):
-    """Rows (prompt, sample), prompts sorted by length, cut into micro-batches with
-    rows * (longest prompt + max_new) <= budget (>= 1 row each), then the largest split until there are
-    at least `min_batches`. Samples of one prompt stay together when possible (shared prefill)."""
+def plan_micro_batches(lengths: list[int], n: int, max_new: int, budget: int) -> list[list[tuple[int, int]]]:
+    """Rows (prompt, sample), prompts sorted by length (little padding per micro-batch), cut into
+    micro-batches with rows * (longest prompt + max_new) <= budget (>= 1 row each). The samples of a
+    prompt are consecutive, so they share one prefill when they land in the same micro-batch."""
     order = sorted(range(len(lengths)), key=lambda i: (lengths[i], i))
     batches: list[list[tuple[int, int]]] = []
     cur: list[tuple[int, int]] = []
@@ -203,59 +186,7 @@ def plan_micro_batches(lengths: list[int], n: int, max_new: int, budget: int, mi
             cur.append((i, j))
             cur_p = max(cur_p, lengths[i])
     batches.append(cur)
-    while len(batches) < min_batches:
-        k = max(range(len(batches)), key=lambda b: len(batches[b]))
-        rows = batches[k]
-        if len(rows) < 2:
-            break
-        mid = len(rows) // 2
-        # Prefer a cut between prompts near the middle.
-        cuts = [c for c in range(1, len(rows)) if rows[c][0] != rows[c - 1][0]]
-        if cuts:
-            mid = min(cuts, key=lambda c: abs(c - len(rows) / 2))
-        batches[k:k + 1] = [rows[:mid], rows[mid:]]
     return batches
-
-
-def _run_workers(fwd, batches, n_workers: int, args) -> None:
-    """Decode micro-batches on `n_workers` Python threads, each with an equal share of the intra-op threads.
-
-    On a small CPU model most of a decode step is per-op overhead and OpenMP fork/join; two
-    single-threaded loops overlap one's Python with the other's kernels and never wait at an OpenMP
-    barrier (which is what makes a 2-thread OpenMP loop collapse when the cores are shared).
-    PyTorch's intra-op thread count is process-wide: it is lowered for the duration and restored.
-    """
-    import threading
-
-    threads_before = torch.get_num_threads()
-    lock = threading.Lock()
-    todo = list(range(len(batches)))
-    errors: list[BaseException] = []
-
-    def work(f) -> None:
-        try:
-            with torch.inference_mode():
-                while True:
-                    with lock:
-                        if not todo or errors:
-                            return
-                        k = todo.pop(0)
-                    _run_micro_batch(f, batches[k], *args)
-        except BaseException as e:  # re-raised in the calling thread
-            errors.append(e)
-
-    torch.set_num_threads(max(1, threads_before // n_workers))
-    try:
-        pool = [threading.Thread(target=work, args=(fwd.fork(),), daemon=True) for _ in range(n_workers - 1)]
-        for t in pool:
-            t.start()
-        work(fwd)
-        for t in pool:
-            t.join()
-    finally:
-        torch.set_num_threads(threads_before)
-    if errors:
-        raise errors[0]
 
 
 def _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_table, tokenizer, pad_id, results):

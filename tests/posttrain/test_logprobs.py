@@ -18,6 +18,16 @@ from posttrain.logprobs import (
 from posttrain.models import build_model, train_tokenizer
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """One intra-op thread: these are correctness tests, and a 2-thread OpenMP team crawls when the
+    machine's cores are shared with other test processes."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="module")
 def model():
     rng = random.Random(0)

@@ -1,0 +1,452 @@
+"""Preference pairs: sample from the SFT model, rank with the task's gold preference, keep (chosen, rejected).
+
+CPU:        posttrain prefs --recipe tiny-summarize     (~30 s on 2 cores once the SFT model exists)
+Multi-GPU:  accelerate launch --num_processes 8 -m posttrain prefs --recipe tiny-summarize
+            (each process samples its shard of the prompts; prompt_keys make the samples independent
+            of the sharding, and the main process gathers and writes the files)
+
+The stage writes `runs/<recipe>/prefs/final/` as its last act (a temp dir renamed, so it is
+complete once it exists), holding two preference files (schema `preference` of posttrain.data):
+
+    final/train.jsonl   pairs from the task's training prompts
+    final/eval.jsonl    pairs from held-out prompts (reward-model eval, DPO held-out accuracy)
+
+Each row is {"prompt", "chosen", "rejected", "meta"}; `meta` is the task's meta of the prompt
+(so the gold scorer can score either side) plus `meta["pair"]` = {prompt_index, chosen_sample,
+rejected_sample, chosen_key, rejected_key, strategy}. Load one file, not the directory
+(`posttrain.data.load_rows` would read both files of a directory).
+
+How pairs are made (`form_pairs`, the same code for offline data and online DPO):
+1. `samples_per_prompt` completions per prompt from the rollout engine at `temperature` (seeded,
+   prompt_keys = dataset indices, so the samples do not depend on batching or sharding).
+2. Each completion gets a key, larger is better: the task's `gold_key` (tiny-summarize: length
+   band first, then quality rounded to 0.01) or, for online DPO with an RM labeler, the RM score.
+3. Best vs worst: chosen = the highest key, rejected = the lowest (the lowest sample index among
+   equal keys, so it is deterministic). A prompt whose samples all tie gives no pair (skipped
+   and counted: a tie carries no preference).
+4. `pairs_per_prompt` > 1 adds pairs of the same chosen against other samples with a strictly
+   lower key, drawn without replacement with a seeded RNG (best vs random others). The extra
+   pairs carry the finer distinctions (e.g. both in the length band, different quality) that
+   best-vs-worst, mostly a length contrast, rarely shows.
+Samples cut at max_new_tokens (finish "length") stay in: they are typically the worst and make
+good rejected examples; as text they are re-tokenized with an eos at the end, as any text pair is.
+
+User files. `prefs.train_file` (and optionally `prefs.eval_file`) replace generation: JSONL,
+JSON or Parquet with prompt/chosen/rejected (+ optional meta). Without an eval file, a seeded
+`eval_fraction` of the train rows is held out. Bad rows (chosen == rejected, an empty side)
+stop the stage or are skipped with a count, per `on_bad_rows`; rows too long for the model are
+found where the tokenizer is known (the DPO / RM trainers, same flag there). `dpo.train_file` /
+`rm.train_file` read a file directly without this stage.
+"""
+from __future__ import annotations
+
+import json
+import random
+import shutil
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Literal, Sequence
+
+import torch
+
+from posttrain.data import DataError
+
+PAIR_FIELDS = ("prompt", "chosen", "rejected")
+
+
+@dataclass
+class PrefsConfig:
+    train_file: str | None = None
+    """A preference file (JSONL/JSON/Parquet: prompt, chosen, rejected) used instead of sampling pairs."""
+    eval_file: str | None = None
+    """A held-out preference file; without one (and with train_file) eval_fraction of train_file is held out."""
+    eval_fraction: float = 0.05
+    """Fraction of train_file held out for eval when no eval_file is given."""
+    n_prompts: int = 1000
+    """Training prompts to sample for (the first n of the task's training split)."""
+    n_eval_prompts: int = 100
+    """Held-out prompts to sample eval pairs for (the first n of the task's eval split)."""
+    samples_per_prompt: int = 8
+    """Completions sampled per prompt (K); pairs are formed among them."""
+    pairs_per_prompt: int = 1
+    """Pairs per prompt: 1 = best vs worst; more adds best vs random others with a lower key."""
+    temperature: float = 1.0
+    """Sampling temperature."""
+    top_p: float = 1.0
+    """Nucleus sampling mass (1: off)."""
+    max_new_tokens: int = 64
+    """Generation budget per completion."""
+    on_bad_rows: Literal["error", "skip"] = "error"
+    """User files: stop at the first bad row (chosen == rejected, empty side) or skip them with a count."""
+    seed: int = 0
+    """Seed of sampling and of the choice of extra pairs."""
+
+
+# ----------------------------------------------------------------------------- forming pairs
+def form_pairs(keys: Sequence[Any], pairs_per_prompt: int, rng: random.Random) -> list[tuple[int, int]]:
+    """(chosen, rejected) sample indices for one prompt's samples, ranked by `keys` (larger is better).
+
+    The first pair is best vs worst (lowest index among equal keys on both ends); further pairs
+    are the best against random other samples with a strictly lower key. No pair when all tie.
+    """
+    if pairs_per_prompt < 1:
+        raise ValueError(f"pairs_per_prompt must be >= 1, got {pairs_per_prompt}")
+    if len(keys) < 2:
+        return []
+    best = max(range(len(keys)), key=lambda i: (keys[i], -i))
+    worst = min(range(len(keys)), key=lambda i: (keys[i], i))
+    if not keys[best] > keys[worst]:
+        return []
+    pairs = [(best, worst)]
+    others = [i for i in range(len(keys)) if keys[i] < keys[best] and i != worst]
+    extra = min(pairs_per_prompt - 1, len(others))
+    if extra > 0:
+        pairs += [(best, j) for j in rng.sample(others, extra)]
+    return pairs
+
+
+def gold_labeler(task_name: str) -> Callable[[list[dict], list[list[str]]], list[list[Any]]]:
+    """Keys from the task's gold preference: `task.gold_key(meta, text)` per sample."""
+    from posttrain import tasks
+
+    task = tasks.get_task(task_name)
+    if not hasattr(task, "gold_key"):
+        raise ValueError(f"task {task_name!r} has no gold preference (gold_key); give a preference file "
+                         "(prefs.train_file) or use a reward-model labeler")
+
+    def label(rows: list[dict], texts: list[list[str]]) -> list[list[Any]]:
+        return [[task.gold_key(r["meta"], t) for t in ts] for r, ts in zip(rows, texts)]
+
+    return label
+
+
+def scorer_labeler(scorer) -> Callable[[list[dict], list[list[str]]], list[list[Any]]]:
+    """Keys from a `posttrain.scoring` scorer (e.g. a reward model): its reward per sample."""
+
+    def label(rows: list[dict], texts: list[list[str]]) -> list[list[Any]]:
+        prompts = [r["prompt"] for r, ts in zip(rows, texts) for _ in ts]
+        refs = [r.get("meta") for r, ts in zip(rows, texts) for _ in ts]
+        rewards = scorer.score(prompts, [t for ts in texts for t in ts], refs).rewards
+        out, i = [], 0
+        for ts in texts:
+            out.append(rewards[i:i + len(ts)])
+            i += len(ts)
+        return out
+
+    return label
+
+
+def sample_pairs(model, tokenizer, rows: list[dict], labeler, *, prompt_keys: Sequence[int], samples_per_prompt: int,
+                 pairs_per_prompt: int, temperature: float, top_p: float = 1.0, max_new_tokens: int = 64,
+                 seed: int = 0, strategy: str = "gold") -> tuple[list[dict], dict[str, Any]]:
+    """Sample K completions per row, rank them with `labeler`, form pairs (see the module docstring).
+
+    `rows` carry "prompt" (and "meta" for the gold labeler); `prompt_keys` are stable ids (dataset
+    indices) that seed each prompt's samples and extra-pair choice. Returns (pair rows, stats).
+    """
+    from posttrain.rollout import SamplingParams, generate
+
+    if samples_per_prompt < 2:
+        raise ValueError(f"samples_per_prompt must be >= 2 to form pairs, got {samples_per_prompt}")
+    params = SamplingParams(n=samples_per_prompt, temperature=temperature, top_p=top_p,
+                            max_new_tokens=max_new_tokens, seed=seed)
+    rollouts = generate(model, tokenizer, [r["prompt"] for r in rows], params, prompt_keys=list(prompt_keys))
+    K = samples_per_prompt
+    texts = [[ro.text for ro in rollouts[i * K:(i + 1) * K]] for i in range(len(rows))]
+    keys = labeler(rows, texts)
+    out: list[dict] = []
+    tied = 0
+    for row, key_i, ts, pkey in zip(rows, keys, texts, prompt_keys):
+        rng = random.Random(f"pairs:{seed}:{pkey}")
+        pairs = form_pairs(key_i, pairs_per_prompt, rng)
+        tied += not pairs
+        for c, r in pairs:
+            meta = dict(row.get("meta") or {})
+            meta["pair"] = {"prompt_index": int(pkey), "chosen_sample": c, "rejected_sample": r,
+                            "chosen_key": _jsonable(key_i[c]), "rejected_key": _jsonable(key_i[r]), "strategy": strategy}
+            out.append({"prompt": row["prompt"], "chosen": ts[c], "rejected": ts[r], "meta": meta})
+    stats = {"prompts": len(rows), "samples": len(rollouts), "pairs": len(out), "prompts_all_tied": tied,
+             "finish_length": sum(ro.finish_reason == "length" for ro in rollouts)}
+    return out, stats
+
+
+def _jsonable(key: Any) -> Any:
+    if isinstance(key, tuple):
+        return [_jsonable(k) for k in key]
+    if isinstance(key, torch.Tensor):
+        return key.item()
+    return key
+
+
+# ----------------------------------------------------------------------------- reading and checking files
+def read_pairs(path: str | Path) -> list[dict]:
+    """Rows of a preference file (.jsonl / .json / .parquet), each with its 1-based row number in `_row`.
+
+    Structure is checked here (a JSON object with text prompt/chosen/rejected, meta an object or
+    null): a malformed file always raises DataError naming the file and row. Content problems
+    (empty side, chosen == rejected, too long) are `check_pairs`' business, under `on_bad_rows`.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f"{p}: no such preference file (give a .jsonl, .json or .parquet file)")
+    suffix = p.suffix.lower()
+    raw: list[tuple[int, Any]] = []
+    if suffix in (".jsonl", ".json"):
+        text = p.read_text(encoding="utf-8")
+        try:
+            data = json.loads(text)
+            raw = list(enumerate(data if isinstance(data, list) else [data], start=1))
+        except json.JSONDecodeError:
+            for number, line in enumerate(text.splitlines(), start=1):
+                if not line.strip():
+                    continue
+                try:
+                    raw.append((number, json.loads(line)))
+                except json.JSONDecodeError as e:
+                    raise DataError(f"{p}: row {number}: malformed JSON: {e.msg} (column {e.colno})") from None
+    elif suffix == ".parquet":
+        import pyarrow.parquet as pq
+
+        try:
+            table = pq.read_table(p)
+        except Exception as e:  # noqa: BLE001 - any arrow failure is a bad file
+            raise DataError(f"{p}: not a readable parquet file ({e})") from None
+        raw = list(enumerate(table.to_pylist(), start=1))
+    else:
+        raise DataError(f"{p}: unsupported preference file type {p.suffix or '(no extension)'!r}; "
+                        "use .jsonl, .json or .parquet")
+    rows = []
+    for number, row in raw:
+        if not isinstance(row, dict):
+            raise DataError(f"{p}: row {number}: expected a JSON object with prompt, chosen, rejected")
+        if "meta_json" in row and "meta" not in row:  # parquet written by posttrain.data.save_rows
+            row = dict(row, meta=json.loads(row.pop("meta_json") or "null"))
+        for f in PAIR_FIELDS:
+            if f not in row:
+                raise DataError(f"{p}: row {number}: field '{f}': missing")
+            if not isinstance(row[f], str):
+                raise DataError(f"{p}: row {number}: field '{f}': expected text, got {type(row[f]).__name__}")
+        if row.get("meta") is not None and not isinstance(row["meta"], dict):
+            raise DataError(f"{p}: row {number}: field 'meta': expected a JSON object or null")
+        rows.append({"prompt": row["prompt"], "chosen": row["chosen"], "rejected": row["rejected"],
+                     "meta": row.get("meta"), "_row": number})
+    if not rows:
+        raise DataError(f"{p}: no rows")
+    return rows
+
+
+@dataclass
+class BadRows:
+    """Rows dropped by `check_pairs` (on_bad_rows="skip"): reason -> row numbers."""
+
+    source: str
+    rows: dict[str, list[int]] = field(default_factory=dict)
+
+    @property
+    def count(self) -> int:
+        return sum(len(v) for v in self.rows.values())
+
+    def add(self, reason: str, row: int) -> None:
+        self.rows.setdefault(reason, []).append(row)
+
+    def summary(self) -> str:
+        parts = [f"{len(v)} {k} (row{'s' if len(v) > 1 else ''} {', '.join(map(str, v[:5]))}"
+                 f"{', ...' if len(v) > 5 else ''})" for k, v in self.rows.items()]
+        return f"skipped {self.count} bad row{'s' if self.count != 1 else ''} of {self.source}: " + "; ".join(parts)
+
+
+@dataclass
+class TokenizedPair:
+    """Token ids of one pair: prompt (with the tokenizer's special tokens), each completion (+ eos)."""
+
+    prompt: list[int]
+    chosen: list[int]
+    rejected: list[int]
+    row: int  # 1-based row number in its source
+
+
+def check_pairs(rows: list[dict], source: str, on_bad: Literal["error", "skip"], tokenizer=None,
+                max_length: int | None = None, append_eos: bool = True) -> tuple[list[dict], list[TokenizedPair], BadRows]:
+    """Drop or refuse bad pairs; tokenize the good ones when a tokenizer is given.
+
+    Bad: an empty (whitespace-only) prompt, chosen or rejected; chosen == rejected (after
+    stripping); prompt + completion (+ eos) longer than `max_length` tokens, for either side.
+    on_bad="error": DataError naming the source, the row and the problem, at the first bad row.
+    on_bad="skip": the bad rows are dropped and reported in the returned `BadRows`.
+    Returns (kept rows, their tokenized pairs ([] without a tokenizer), BadRows).
+    """
+    if on_bad not in ("error", "skip"):
+        raise ValueError(f"on_bad must be 'error' or 'skip', got {on_bad!r}")
+    bad = BadRows(source)
+    hint = " (set on_bad_rows=skip to drop such rows)"
+
+    def reject(row: dict, reason: str, detail: str) -> None:
+        if on_bad == "error":
+            raise DataError(f"{source}: row {row['_row']}: {detail}{hint}")
+        bad.add(reason, row["_row"])
+
+    ok: list[dict] = []
+    for row in rows:
+        empty = [f for f in PAIR_FIELDS if not row[f].strip()]
+        if empty:
+            reject(row, "empty", f"field '{empty[0]}': empty text")
+        elif row["chosen"].strip() == row["rejected"].strip():
+            reject(row, "identical pair", "field 'rejected': identical to 'chosen'")
+        else:
+            ok.append(row)
+    if tokenizer is None:
+        return ok, [], bad
+    eos = [tokenizer.eos_token_id] if append_eos else []
+    prompts = tokenizer([r["prompt"] for r in ok], add_special_tokens=True)["input_ids"]
+    chosen = tokenizer([r["chosen"] for r in ok], add_special_tokens=False)["input_ids"]
+    rejected = tokenizer([r["rejected"] for r in ok], add_special_tokens=False)["input_ids"]
+    kept, pairs = [], []
+    for row, p, c, r in zip(ok, prompts, chosen, rejected):
+        n = len(p) + max(len(c), len(r)) + len(eos)
+        if max_length is not None and n > max_length:
+            reject(row, "too long", f"prompt + completion is {n} tokens, longer than model.max_length={max_length}")
+            continue
+        kept.append(row)
+        pairs.append(TokenizedPair(p, c + eos, r + eos, row["_row"]))
+    return kept, pairs, bad
+
+
+def load_pairs(train_file: str, eval_file: str | None, on_bad: Literal["error", "skip"], *,
+               eval_fraction: float = 0.05, seed: int = 0, say: Callable[[str], None] = print,
+               tag: str = "[prefs]") -> tuple[list[dict], list[dict]]:
+    """(train rows, eval rows) from user files, checked (no tokenizer: length is checked by trainers).
+
+    Without an eval file a seeded `eval_fraction` of the train rows is held out (at least one row).
+    """
+    train = read_pairs(train_file)
+    train, _, bad = check_pairs(train, str(train_file), on_bad)
+    if bad.count:
+        say(f"{tag} {bad.summary()}")
+    if eval_file:
+        ev = read_pairs(eval_file)
+        ev, _, bad = check_pairs(ev, str(eval_file), on_bad)
+        if bad.count:
+            say(f"{tag} {bad.summary()}")
+        return train, ev
+    if not 0.0 < eval_fraction < 1.0:
+        return train, []
+    order = list(range(len(train)))
+    random.Random(f"eval-split:{seed}").shuffle(order)
+    n_eval = max(1, int(round(eval_fraction * len(train)))) if len(train) > 1 else 0
+    held = set(order[:n_eval])
+    return [r for i, r in enumerate(train) if i not in held], [r for i, r in enumerate(train) if i in held]
+
+
+def read_stage_pairs(prefs_dir: Path) -> tuple[list[dict], list[dict]]:
+    """(train rows, eval rows) from a prefs stage output directory (eval may be empty)."""
+    prefs_dir = Path(prefs_dir)
+    train = read_pairs(prefs_dir / "train.jsonl")
+    ev = read_pairs(prefs_dir / "eval.jsonl") if (prefs_dir / "eval.jsonl").is_file() else []
+    return train, ev
+
+
+def strip_private(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
+
+
+# ----------------------------------------------------------------------------- batches
+def collate_pairs(pairs: Sequence[TokenizedPair], pad_id: int) -> dict[str, torch.Tensor]:
+    """One right-padded batch holding the chosen rows first, then the rejected rows: (2B, T) tensors.
+
+    input_ids, attention_mask, completion_mask (the completion tokens incl. eos). Chosen and
+    rejected go through the model in ONE forward pass (concatenated along the batch, as TRL's
+    `concatenated_forward`); row i and row B + i are the two sides of pair i.
+    """
+    seqs = [(p.prompt, p.chosen) for p in pairs] + [(p.prompt, p.rejected) for p in pairs]
+    T = max(len(a) + len(b) for a, b in seqs)
+    input_ids = torch.full((len(seqs), T), pad_id, dtype=torch.long)  # (2B, T)
+    attention_mask = torch.zeros((len(seqs), T), dtype=torch.long)  # (2B, T)
+    completion_mask = torch.zeros((len(seqs), T), dtype=torch.bool)  # (2B, T)
+    for i, (a, b) in enumerate(seqs):
+        n = len(a) + len(b)
+        input_ids[i, :n] = torch.tensor(a + b)
+        attention_mask[i, :n] = 1
+        completion_mask[i, len(a):n] = True
+    return {"input_ids": input_ids, "attention_mask": attention_mask, "completion_mask": completion_mask}
+
+
+# ----------------------------------------------------------------------------- the stage
+def train(res, ensure) -> Path:
+    """The prefs stage: write `final/{train,eval}.jsonl` (see the module docstring); returns final/."""
+    from posttrain import loop, tasks
+    from posttrain.config import save_resolved
+    from posttrain.data import save_rows
+    from posttrain.models import load_model, load_tokenizer
+
+    cfg: PrefsConfig = res.stage_cfg
+    run_dir = res.stage_dir()
+    if cfg.train_file:
+        train_rows, eval_rows = load_pairs(cfg.train_file, cfg.eval_file, cfg.on_bad_rows,
+                                           eval_fraction=cfg.eval_fraction, seed=cfg.seed)
+        stats: dict[str, Any] = {"source": "file", "train_file": cfg.train_file, "eval_file": cfg.eval_file}
+        accelerator = loop.setup(cfg.seed, res.run.threads)
+        say = print if accelerator.is_main_process else (lambda *a, **k: None)
+        say(f"[prefs] {len(train_rows)} training and {len(eval_rows)} held-out pairs from {cfg.train_file}")
+    else:
+        prompts = tasks.load_split(res.task, "train")[: cfg.n_prompts]
+        eval_prompts = tasks.load_split(res.task, "eval")[: cfg.n_eval_prompts]
+        labeler = gold_labeler(res.task.name)  # before any model loads: a task without gold fails here
+        sft_dir = ensure("sft")
+        accelerator = loop.setup(cfg.seed, res.run.threads)
+        say = print if accelerator.is_main_process else (lambda *a, **k: None)
+        tokenizer = load_tokenizer(sft_dir)
+        model = load_model(sft_dir, device=accelerator.device)
+        say(f"[prefs] sampling {cfg.samples_per_prompt} completions for {len(prompts)} training and "
+            f"{len(eval_prompts)} held-out prompts from {sft_dir} (temperature {cfg.temperature})")
+        common = dict(samples_per_prompt=cfg.samples_per_prompt, pairs_per_prompt=cfg.pairs_per_prompt,
+                      temperature=cfg.temperature, top_p=cfg.top_p, max_new_tokens=cfg.max_new_tokens,
+                      seed=cfg.seed)
+
+        def sharded(rows: list[dict], key_offset: int) -> tuple[list[dict], dict[str, int]]:
+            # each process samples its shard; prompt keys (dataset indices) make samples independent of it
+            idx = list(range(len(rows)))[accelerator.process_index::accelerator.num_processes]
+            out, st = sample_pairs(model, tokenizer, [rows[i] for i in idx], labeler,
+                                   prompt_keys=[key_offset + i for i in idx], **common)
+            if accelerator.num_processes > 1:
+                from accelerate.utils import gather_object
+
+                out = sorted(gather_object(out), key=lambda r: r["meta"]["pair"]["prompt_index"])
+                sts = gather_object([st])
+                st = {k: sum(s[k] for s in sts) for k in st}
+            return out, st
+
+        train_rows, s_train = sharded(prompts, 0)
+        # held-out prompts get their own key range so they never share random streams with training prompts
+        eval_rows, s_eval = sharded(eval_prompts, 10**9)
+        stats = {"source": "sampled", "model": str(sft_dir), "train": s_train, "eval": s_eval}
+        say(f"[prefs] {s_train['pairs']} training pairs ({s_train['prompts_all_tied']} prompts skipped: all "
+            f"samples tied), {s_eval['pairs']} held-out pairs")
+        if not train_rows:
+            raise DataError(f"prefs: no pairs: every prompt's {cfg.samples_per_prompt} samples tied under the gold "
+                            "preference; raise samples_per_prompt or temperature")
+    final = run_dir / "final"
+    if not accelerator.is_main_process:
+        accelerator.wait_for_everyone()
+        return final
+    loop.prepare_run_dir(run_dir, False, say)
+    save_resolved(res, run_dir / "config.yaml")
+    tmp = run_dir / "final.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    save_rows(strip_private(train_rows), tmp / "train.jsonl")
+    if eval_rows:
+        save_rows(strip_private(eval_rows), tmp / "eval.jsonl")
+    stats["chosen_keys"] = _key_histogram(train_rows, "chosen_key")
+    stats["rejected_keys"] = _key_histogram(train_rows, "rejected_key")
+    loop.write_json(run_dir / "stats.json", stats)
+    if final.exists():
+        shutil.rmtree(final)
+    tmp.rename(final)  # atomic: final/ exists whole or not at all
+    say(f"[prefs] wrote {final}/train.jsonl ({len(train_rows)} pairs) and eval.jsonl ({len(eval_rows)} pairs)")
+    accelerator.wait_for_everyone()
+    return final
+
+
+def _key_histogram(rows: list[dict], which: str) -> dict[str, int]:
+    c = Counter(json.dumps(((r.get("meta") or {}).get("pair") or {}).get(which)) for r in rows)
+    return dict(c.most_common(10))
