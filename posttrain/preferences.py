@@ -23,11 +23,14 @@ How pairs are made (`form_pairs`, the same code for offline data and online DPO)
    band first, then quality rounded to 0.01) or, for online DPO with an RM labeler, the RM score.
 3. Best vs worst: chosen = the highest key, rejected = the lowest (the lowest sample index among
    equal keys, so it is deterministic). A prompt whose samples all tie gives no pair (skipped
-   and counted: a tie carries no preference).
-4. `pairs_per_prompt` > 1 adds pairs of the same chosen against other samples with a strictly
-   lower key, drawn without replacement with a seeded RNG (best vs random others). The extra
-   pairs carry the finer distinctions (e.g. both in the length band, different quality) that
-   best-vs-worst, mostly a length contrast, rarely shows.
+   and counted: a tie carries no preference). Empty completions (eos first) are left out of
+   the ranking (the preference schema has no empty side) and counted.
+4. `pairs_per_prompt` >= 2 adds best vs the runner-up (the best sample with a strictly lower
+   key: a hard negative), and >= 3 best vs random other samples with a strictly lower key
+   (seeded, without replacement). Best vs worst is mostly a length contrast (the worst sample
+   rambles on); the runner-up is typically in the band too, so that pair carries the quality
+   distinction (an invented name, a missing fact). Trained on best-vs-worst alone the tiny
+   model learns "stop early" and overshoots to too-short summaries.
 Samples cut at max_new_tokens (finish "length") stay in: they are typically the worst and make
 good rejected examples; as text they are re-tokenized with an eos at the end, as any text pair is.
 
@@ -87,8 +90,9 @@ class PrefsConfig:
 def form_pairs(keys: Sequence[Any], pairs_per_prompt: int, rng: random.Random) -> list[tuple[int, int]]:
     """(chosen, rejected) sample indices for one prompt's samples, ranked by `keys` (larger is better).
 
-    The first pair is best vs worst (lowest index among equal keys on both ends); further pairs
-    are the best against random other samples with a strictly lower key. No pair when all tie.
+    Pair 1: best vs worst. Pair 2: best vs the runner-up, the best sample with a strictly lower key
+    (a hard negative). Further pairs: best vs random others with a strictly lower key. Among equal
+    keys the lowest index is taken; no pair when all tie; no pair is repeated.
     """
     if pairs_per_prompt < 1:
         raise ValueError(f"pairs_per_prompt must be >= 1, got {pairs_per_prompt}")
@@ -99,10 +103,14 @@ def form_pairs(keys: Sequence[Any], pairs_per_prompt: int, rng: random.Random) -
     if not keys[best] > keys[worst]:
         return []
     pairs = [(best, worst)]
-    others = [i for i in range(len(keys)) if keys[i] < keys[best] and i != worst]
-    extra = min(pairs_per_prompt - 1, len(others))
+    lower = [i for i in range(len(keys)) if keys[i] < keys[best] and i != worst]
+    if pairs_per_prompt >= 2 and lower:
+        runner_up = max(lower, key=lambda i: (keys[i], -i))
+        pairs.append((best, runner_up))
+        lower.remove(runner_up)
+    extra = min(pairs_per_prompt - len(pairs), len(lower))
     if extra > 0:
-        pairs += [(best, j) for j in rng.sample(others, extra)]
+        pairs += [(best, j) for j in rng.sample(lower, extra)]
     return pairs
 
 
@@ -157,9 +165,13 @@ def sample_pairs(model, tokenizer, rows: list[dict], labeler, *, prompt_keys: Se
     keys = labeler(rows, texts)
     out: list[dict] = []
     tied = 0
+    empty = 0
     for row, key_i, ts, pkey in zip(rows, keys, texts, prompt_keys):
         rng = random.Random(f"pairs:{seed}:{pkey}")
-        pairs = form_pairs(key_i, pairs_per_prompt, rng)
+        # empty completions (eos first) are left out: the preference schema has no empty side
+        ok = [i for i, t in enumerate(ts) if t.strip()]
+        empty += len(ts) - len(ok)
+        pairs = [(ok[c], ok[r]) for c, r in form_pairs([key_i[i] for i in ok], pairs_per_prompt, rng)]
         tied += not pairs
         for c, r in pairs:
             meta = dict(row.get("meta") or {})
@@ -167,6 +179,7 @@ def sample_pairs(model, tokenizer, rows: list[dict], labeler, *, prompt_keys: Se
                             "chosen_key": _jsonable(key_i[c]), "rejected_key": _jsonable(key_i[r]), "strategy": strategy}
             out.append({"prompt": row["prompt"], "chosen": ts[c], "rejected": ts[r], "meta": meta})
     stats = {"prompts": len(rows), "samples": len(rollouts), "pairs": len(out), "prompts_all_tied": tied,
+             "empty_samples": empty,
              "finish_length": sum(ro.finish_reason == "length" for ro in rollouts)}
     return out, stats
 
@@ -312,22 +325,27 @@ def check_pairs(rows: list[dict], source: str, on_bad: Literal["error", "skip"],
     return kept, pairs, bad
 
 
-def load_pairs(train_file: str, eval_file: str | None, on_bad: Literal["error", "skip"], *,
+def load_pairs(train_file: str, eval_file: str | None, on_bad: Literal["error", "skip"] | None, *,
                eval_fraction: float = 0.05, seed: int = 0, say: Callable[[str], None] = print,
                tag: str = "[prefs]") -> tuple[list[dict], list[dict]]:
-    """(train rows, eval rows) from user files, checked (no tokenizer: length is checked by trainers).
+    """(train rows, eval rows) from user files.
 
-    Without an eval file a seeded `eval_fraction` of the train rows is held out (at least one row).
+    `on_bad`: check the rows here (no tokenizer, so not their length) with that policy; None
+    leaves all checks to the caller (trainers run `check_pairs` with their tokenizer, so one
+    report covers every kind of bad row). Without an eval file a seeded `eval_fraction` of the
+    train rows is held out (at least one row); rows keep their row numbers in `_row`.
     """
     train = read_pairs(train_file)
-    train, _, bad = check_pairs(train, str(train_file), on_bad)
-    if bad.count:
-        say(f"{tag} {bad.summary()}")
-    if eval_file:
-        ev = read_pairs(eval_file)
-        ev, _, bad = check_pairs(ev, str(eval_file), on_bad)
+    if on_bad is not None:
+        train, _, bad = check_pairs(train, str(train_file), on_bad)
         if bad.count:
             say(f"{tag} {bad.summary()}")
+    if eval_file:
+        ev = read_pairs(eval_file)
+        if on_bad is not None:
+            ev, _, bad = check_pairs(ev, str(eval_file), on_bad)
+            if bad.count:
+                say(f"{tag} {bad.summary()}")
         return train, ev
     if not 0.0 < eval_fraction < 1.0:
         return train, []
@@ -344,6 +362,20 @@ def read_stage_pairs(prefs_dir: Path) -> tuple[list[dict], list[dict]]:
     train = read_pairs(prefs_dir / "train.jsonl")
     ev = read_pairs(prefs_dir / "eval.jsonl") if (prefs_dir / "eval.jsonl").is_file() else []
     return train, ev
+
+
+def training_pairs(ensure, train_file: str | None, eval_file: str | None, *, seed: int = 0
+                   ) -> tuple[list[dict], list[dict], str, str]:
+    """(train rows, eval rows, train source, eval source) for a trainer, unchecked (the trainer runs
+    `check_pairs` with its tokenizer): a user file, or the prefs stage output (built if missing)."""
+    if train_file:
+        train, ev = load_pairs(train_file, eval_file, None, seed=seed)
+        return train, ev, str(train_file), str(eval_file or train_file)
+    prefs_dir = Path(ensure("prefs"))
+    train, ev = read_stage_pairs(prefs_dir)
+    if eval_file:
+        ev = read_pairs(eval_file)
+    return train, ev, str(prefs_dir / "train.jsonl"), str(eval_file or prefs_dir / "eval.jsonl")
 
 
 def strip_private(rows: list[dict]) -> list[dict]:

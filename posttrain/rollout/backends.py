@@ -1,27 +1,39 @@
 """Forward paths for the rollout engine: a lean Llama-family decoder over a preallocated KV cache, and
 the Hugging Face forward (with its own cache) for everything else.
 
-Both expose the same four calls the engine's loop uses:
+Both expose the calls the engine's loop uses:
     start(rows, cols, max_pos)           allocate the cache for one micro-batch
     prefill(ids, valid, pos, row_of)     prompts (U, Tp) -> next-token logits for every row (B, V)
     decode(tok, pos, col)                one token per active row (B, 1) -> logits (B, V)
-    select(order)                        keep / reorder active rows (finished rows dropped)
+    select(order, col)                   keep / reorder active rows (finished rows dropped)
+    release()                            drop the cache
 
-Lean path (`LeanLlama`, model types llama / mistral / qwen2 with plain nn.Linear weights):
-- Weights are read from the HF module at construction (one `generate` call): q/k/v fused into one
-  matrix, gate/up into another; RMSNorms via `F.rms_norm`; RoPE cos/sin tables built from the
-  module's own `inv_freq` and `attention_scaling` exactly as `LlamaRotaryEmbedding` does (so any
-  static rope type: default, linear, llama3, yarn, ...). RoPE is applied to q, k and v at once
-  (v gets cos=1, sin=0) with the rotate-half written as a flip of the two halves against a
-  sign-folded sine table: 3 ops per layer.
-- KV cache: one tensor (L, 2, B, Hkv, Tmax, D) allocated per micro-batch, written in place; all
-  rows share one write column (prompts are left-padded), pad keys get an additive -inf mask.
-- Decode attention is baddbmm(mask, q, k^T) -> softmax -> bmm on (B*Hkv, rep, .) views of the
-  cache (GQA without repeating k/v); prefill uses SDPA with a causal + padding mask.
-- o_proj and down_proj are `addmm` onto the residual stream.
+Lean path (`LeanLlama`; model types llama / mistral / qwen2, fp32, plain nn.Linear projections, RoPE
+whose frequencies do not depend on the sequence length):
+- Weights are read from the HF module and rearranged once (cached per model by the engine, rebuilt
+  when a parameter changes): q/k/v fused into one (d, (H+2Hkv)*Dh) matrix and gate/up into one
+  (d, 2I) matrix, stored transposed for `x @ W`; each RMSNorm weight (times sqrt(d)) and the softmax
+  scale 1/sqrt(Dh) are folded into the matrix that follows, so a norm is 3 small ops
+  (x / hypot(|x|, sqrt(d*eps))).
+- RoPE: the q/k rows of each head are permuted from the half-split pairing (x_i, x_{i+Dh/2}) that
+  `rotate_half` uses to interleaved pairs, so rotating is one complex multiply by a
+  (position, Dh/2) table built from the module's own `inv_freq` and `attention_scaling` with the
+  same expression as `LlamaRotaryEmbedding` (default, linear, llama3, yarn, ...). q.k is unchanged
+  by permuting q and k alike; v is untouched.
+- KV cache: k and v tensors (L, B, Hkv, Tmax, Dh) per micro-batch, written in place; rotated k is
+  written straight into the cache by the complex multiply (`out=`). All rows share one write column
+  (prompts are left-padded); pad keys get an additive -inf mask.
+- Decode attention: bmm(q, k^T) + mask -> softmax -> bmm(., v) over (B*Hkv, rep, .) views of the
+  cache (GQA without repeating k/v; measured faster than CPU SDPA for one query). It is
+  memory-bound: each step reads the whole cache once.
+- Prefill: prompts are split into chunks of similar length (dynamic programming over padded tokens
+  plus a per-chunk cost), so little compute goes to padding; explicit masked attention; only the last
+  position goes through the last layer's MLP and the logits matmul.
+- o_proj and down_proj accumulate into the residual stream in place (`addmm_`).
 - Finished rows are dropped by moving the last live rows into their slots ("holes"), so a
   compaction copies only as many cache rows as have finished.
-Agreement with the HF forward: within 1e-5 on fp32 logits (tested at 1e-4).
+Agreement with the HF forward: ~5e-7 on fp32 logits (tested at 1e-4, prefill and decode, left-padded).
+Not thread-safe: one `generate` at a time per model.
 """
 from __future__ import annotations
 
@@ -84,7 +96,8 @@ class LeanLlama:
     """Llama-family decoder over a preallocated KV cache (see module docstring)."""
 
     name = "lean"
-    PREFILL_PAD_SLACK = 1.25  # a prefill chunk pads at most ~25% over its real prompt tokens
+    PREFILL_CHUNK_COST = 64  # fixed cost of one prefill chunk, in prompt tokens (op overhead)
+    PREFILL_MAX_SPAN = 64  # prompts per prefill chunk, at most
     PREFILL_MAX_MASK = 1 << 22  # bound on chunk * Tp * Tp attention-mask entries
 
     def __init__(self, model):
@@ -93,12 +106,14 @@ class LeanLlama:
         self.device = model.lm_head.weight.device
         self.dtype = model.lm_head.weight.dtype
         att0 = base.layers[0].self_attn
-        self.D = D = att0.head_dim
+        self.D = D = getattr(att0, "head_dim", None) or cfg.hidden_size // cfg.num_attention_heads
         self.H = H = cfg.num_attention_heads
         self.Hkv = Hkv = getattr(cfg, "num_key_value_heads", None) or H
         self.rep = H // Hkv
         self.d = d = cfg.hidden_size
-        self.rot = base.rotary_emb
+        rot = base.rotary_emb
+        self.inv_freq = rot.inv_freq.detach().float().clone()
+        self.attention_scaling = float(getattr(rot, "attention_scaling", 1.0))
         self.embed = base.embed_tokens.weight.detach()  # (V, d)
         # Per head, q/k rows go from half-split order (x_i, x_{i+D/2} are a RoPE pair) to interleaved
         # order, so RoPE is one complex multiply; q.k is unchanged by permuting both the same way.
@@ -122,7 +137,7 @@ class LeanLlama:
             a, m = layer.self_attn, layer.mlp
             g1, c1 = fold(layer.input_layernorm)
             g2, c2 = fold(layer.post_attention_layernorm)
-            sc = float(a.scaling)
+            sc = float(getattr(a, "scaling", D ** -0.5))
             wq = qk_rows(a.q_proj.weight.detach().float(), H) * sc  # softmax scale folded into q
             wk = qk_rows(a.k_proj.weight.detach().float(), Hkv)
             qkv_w = t(torch.cat([wq, wk, a.v_proj.weight.detach().float()], 0) * g1)  # (d, NH*D)
@@ -153,10 +168,9 @@ class LeanLlama:
 
     def _rope_table(self, max_pos: int) -> torch.Tensor:
         """(max_pos, D/2) complex: attention_scaling * (cos + i sin), computed as LlamaRotaryEmbedding does."""
-        inv_freq = self.rot.inv_freq.to(device=self.device, dtype=torch.float32)
         pos = torch.arange(max_pos, device=self.device)
-        freqs = pos[:, None].float() * inv_freq[None, :]  # (P, D/2), same expression as HF
-        sc = float(getattr(self.rot, "attention_scaling", 1.0))
+        freqs = pos[:, None].float() * self.inv_freq[None, :]  # (P, D/2), same expression as HF
+        sc = self.attention_scaling
         return torch.complex(freqs.cos() * sc, freqs.sin() * sc)
 
     def _mlp(self, x, layer):  # x (N, d) -> x + mlp(norm(x))
@@ -180,6 +194,11 @@ class LeanLlama:
         self.rows, self.cols = rows, cols
         self._bound = -1
 
+    def release(self) -> None:
+        """Drop the KV cache (the fused weights stay for the next call)."""
+        self.k = self.v = self.kc = self.key_bias = self.cis = self._views = self._bias = None
+        self._bound = -1
+
     def _bind(self, B: int) -> None:
         """Per-layer views of the first B cache rows, rebuilt only when B changes (finished rows dropped)."""
         Hkv, D, cols = self.Hkv, self.D, self.cols
@@ -197,16 +216,7 @@ class LeanLlama:
         out = torch.empty(B, self.head_w.shape[1], device=self.device, dtype=self.dtype)
         starts = torch.searchsorted(row_of, torch.arange(U + 1, device=row_of.device)).tolist()
         lens = valid.sum(-1).tolist()
-        # Chunks of consecutive prompts, each padded only to its own longest prompt.
-        u0 = 0
-        while u0 < U:
-            u1, width, real = u0 + 1, lens[u0], lens[u0]
-            while u1 < U:
-                w = max(width, lens[u1])
-                if (u1 + 1 - u0) * w > self.PREFILL_PAD_SLACK * (real + lens[u1]) \
-                        or (u1 + 1 - u0) * w * w > self.PREFILL_MAX_MASK:
-                    break
-                width, real, u1 = w, real + lens[u1], u1 + 1
+        for u0, u1, width in self._prefill_chunks(lens):
             r0, r1 = starts[u0], starts[u1]
             c0 = Tp - width
             if c0:  # cache columns left of this chunk's window: finite zeros under a -inf mask
@@ -214,8 +224,30 @@ class LeanLlama:
                 self.v[:, r0:r1, :, :c0] = 0
             out[r0:r1] = self._prefill_chunk(ids[u0:u1, c0:], valid[u0:u1, c0:], pos[u0:u1, c0:],
                                              row_of[r0:r1] - u0, r0, c0)
-            u0 = u1
         return out
+
+    def _prefill_chunks(self, lens: list[int]) -> list[tuple[int, int, int]]:
+        """Split consecutive prompts into chunks (u0, u1, width), each padded only to its own longest
+        prompt: minimises padded tokens + PREFILL_CHUNK_COST per chunk (a chunk's fixed op overhead in
+        tokens), by dynamic programming over chunks of at most PREFILL_MAX_SPAN prompts."""
+        U = len(lens)
+        best = [0.0] + [float("inf")] * U
+        arg = [0] * (U + 1)
+        for j in range(1, U + 1):
+            w = 0
+            for i in range(j - 1, max(-1, j - 1 - self.PREFILL_MAX_SPAN), -1):
+                w = max(w, lens[i])
+                if (j - i) * w * w > self.PREFILL_MAX_MASK and i < j - 1:
+                    break
+                c = best[i] + (j - i) * w + self.PREFILL_CHUNK_COST
+                if c < best[j]:
+                    best[j], arg[j] = c, i
+        chunks, j = [], U
+        while j > 0:
+            i = arg[j]
+            chunks.append((i, j, max(lens[i:j])))
+            j = i
+        return chunks[::-1]
 
     def _prefill_chunk(self, ids, valid, pos, local_rows, r0, c0):
         U, Tp = ids.shape
@@ -250,14 +282,23 @@ class LeanLlama:
                 x = x.view(U, Tp, self.d)[:, -1]
             else:
                 bias_l = attn_bias
-            a = F.scaled_dot_product_attention(q, k, v, attn_mask=bias_l, scale=1.0,
-                                               enable_gqa=self.rep > 1)  # (U, H, Tq, D)
+            a = self._attend(q, k, v, bias_l)  # (U, H, Tq, D)
             x = torch.addmm(x, a.transpose(1, 2).reshape(x.shape[0], H * D), o_w)
             if o_b is not None:
                 x = x + o_b
             x = self._mlp(x, layer)
         logits = self._logits(x)  # (U, V)
         return logits if identity else logits.index_select(0, local_rows)
+
+    def _attend(self, q, k, v, bias):
+        """Prefill attention, q (U, H, Tq, D) already scaled, k/v (U, Hkv, Tk, D), bias (U, 1, Tq, Tk) additive.
+        Explicit matmuls: ~30% faster than CPU SDPA at these sizes; GQA by grouping q heads per kv head."""
+        U, H, Tq, D = q.shape
+        rep = self.rep
+        q = q.reshape(U, self.Hkv, rep * Tq, D)
+        s = torch.matmul(q, k.transpose(-1, -2)).view(U, self.Hkv, rep, Tq, -1)  # (U, Hkv, rep, Tq, Tk)
+        s = torch.softmax(s.add_(bias[:, :, None]), -1).view(U, self.Hkv, rep * Tq, -1)
+        return torch.matmul(s, v).view(U, H, Tq, D)
 
     def decode(self, tok, pos, col: int):
         """tok (B, 1) long, pos (B,) positions, col: cache column of this token -> logits (B, V)."""
@@ -279,12 +320,12 @@ class LeanLlama:
             torch.mul(z[:, H:H + Hkv], cis, out=kc[:, :, col])  # roped k straight into the cache
             vw[:, :, col] = qkv.view(B, NH, D)[:, H + Hkv:]
             s = torch.softmax(torch.bmm(q, kT[:, :, :T]).add_(bias), -1)  # (B*Hkv, rep, T)
-            x = torch.addmm(x, torch.bmm(s, vv[:, :T]).view(B, HD), o_w)
+            x.addmm_(torch.bmm(s, vv[:, :T]).view(B, HD), o_w)  # residual += attn @ Wo, in place
             if o_b is not None:
                 x = x + o_b
             h = x / torch.hypot(torch.linalg.vector_norm(x, dim=-1, keepdim=True), c2)
             gu = h @ gu_w if gu_b is None else torch.addmm(gu_b, h, gu_w)  # (B, 2I)
-            x = torch.addmm(x, F.silu(gu[:, :inter]).mul_(gu[:, inter:]), down_w)
+            x.addmm_(F.silu(gu[:, :inter]).mul_(gu[:, inter:]), down_w)
             if down_b is not None:
                 x = x + down_b
         return self._logits(x)  # (B, V)
@@ -338,6 +379,9 @@ class HFForward:
         from transformers import DynamicCache
 
         return DynamicCache
+
+    def release(self) -> None:
+        self.mask = self.past = None
 
     def decode(self, tok, pos, col: int):
         B = tok.shape[0]

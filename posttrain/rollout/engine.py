@@ -5,6 +5,7 @@ import ctypes
 import dataclasses
 import logging
 import sys
+import weakref
 from typing import Sequence
 
 import torch
@@ -44,8 +45,19 @@ def context_length(model) -> int | None:
     return int(n) if n else None
 
 
+_lean_cache: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _weights_signature(model) -> tuple:
+    """Changes whenever a parameter is replaced or updated in place (optimizer steps bump `_version`)."""
+    return tuple((p.data_ptr(), p._version) for p in model.parameters())
+
+
 def select_backend(model, max_len: int = 0, backend: str = "auto"):
-    """(forward object, one-line reason): "lean" when supported, else the HF forward."""
+    """(forward object, one-line reason): "lean" when supported, else the HF forward.
+
+    The lean path's fused weights are cached per model and rebuilt when any parameter changed since
+    (tensor version counters), so a training step between two calls is always seen."""
     if backend not in ("auto", "lean", "hf"):
         raise ValueError(f"rollout backend must be 'auto', 'lean' or 'hf', got {backend!r}")
     if backend == "hf":
@@ -53,7 +65,13 @@ def select_backend(model, max_len: int = 0, backend: str = "auto"):
     inner = unwrap_model(model)
     ok, why = lean_support(inner, max_len)
     if ok:
-        return LeanLlama(inner), why
+        sig = _weights_signature(inner)
+        hit = _lean_cache.get(inner)
+        if hit is None or hit[0] != sig:
+            with torch.no_grad():
+                hit = (sig, LeanLlama(inner))
+            _lean_cache[inner] = hit
+        return hit[1], why
     if backend == "lean":
         raise ValueError(f"rollout backend 'lean' cannot run this model: {why}; use backend='auto' or 'hf'")
     return HFForward(model), f"HF forward ({why})"
@@ -164,6 +182,7 @@ def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling:
                 _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_table, tokenizer, pad_id,
                                  results)
     finally:
+        fwd.release()
         if isinstance(fwd, HFForward) and model_was_training:
             model.train()
     return _finish(results, ids, texts, params, tokenizer)

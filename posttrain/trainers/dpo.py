@@ -79,6 +79,8 @@ class DPOConfig:
     """sigmoid: DPO; ipo: IPO on length-averaged log-probs; hinge: SLiC-HF calibration loss."""
     label_smoothing: float = 0.0
     """Conservative DPO: assumed probability that a label is flipped (sigmoid only, <= 0.5)."""
+    chosen_nll_weight: float = 0.0
+    """RPO (Pang et al. 2024): add this weight times the per-token NLL of the chosen completions (TRL's rpo_alpha)."""
     reference: Literal["precomputed", "live"] = "precomputed"
     """precomputed: reference log-probs once before training, no reference model in memory; live: a frozen copy."""
     lr: float = 1e-4
@@ -176,7 +178,13 @@ def pair_loss(cfg: DPOConfig, policy_logps: torch.Tensor, policy_tokens: torch.T
     if cfg.loss_type == "ipo":  # length-averaged log-probs for policy and reference (TRL)
         pc, pr = pc / policy_tokens[:B], pr / policy_tokens[B:]
         rc, rr = rc / ref["chosen_tokens"].to(pc.device), rr / ref["rejected_tokens"].to(pc.device)
-    return dpo_loss(pc, pr, rc, rr, beta=cfg.beta, loss_type=cfg.loss_type, label_smoothing=cfg.label_smoothing)
+    loss, metrics = dpo_loss(pc, pr, rc, rr, beta=cfg.beta, loss_type=cfg.loss_type,
+                             label_smoothing=cfg.label_smoothing)
+    if cfg.chosen_nll_weight:
+        nll = -(policy_logps[:B] / policy_tokens[:B].clamp(min=1)).mean()  # per-token NLL of chosen, mean over pairs
+        loss = loss + cfg.chosen_nll_weight * nll
+        metrics["nll/chosen"] = float(nll.detach())
+    return loss, metrics
 
 
 def _select(ref: dict[str, torch.Tensor], idx: list[int]) -> dict[str, torch.Tensor]:
@@ -216,20 +224,6 @@ def _weights_finite(model) -> bool:
 
 
 # ----------------------------------------------------------------------------- data
-def load_preference_data(res: Resolved, ensure, cfg: DPOConfig, say, tag: str = "[dpo]") -> tuple[list[dict], list[dict], str]:
-    """(train rows, eval rows, source name) from dpo.train_file or the prefs stage (built if missing)."""
-    from posttrain import preferences
-
-    if cfg.train_file:
-        train, ev = preferences.load_pairs(cfg.train_file, cfg.eval_file, cfg.on_bad_rows, seed=cfg.seed, say=say, tag=tag)
-        return train, ev, str(cfg.train_file)
-    prefs_dir = ensure("prefs")
-    train, ev = preferences.read_stage_pairs(prefs_dir)
-    if cfg.eval_file:
-        ev = preferences.read_pairs(cfg.eval_file)
-    return train, ev, str(prefs_dir / "train.jsonl")
-
-
 def resolve_proxy_rm(res: Resolved, ensure, spec: str, need: bool) -> Path | None:
     """The reward-model directory for proxy scores (see DPOConfig.proxy_rm); `need`: online_labeler=rm."""
     from posttrain.models import is_model_dir
@@ -264,7 +258,11 @@ def train(res: Resolved, ensure) -> Path:
     say_all = print
 
     # Data first: a bad row must stop the run before the run dir changes.
-    train_rows, eval_rows_pairs, source = load_preference_data(res, ensure, cfg, say_all)
+    train_rows, eval_rows_pairs, source, eval_source = preferences.training_pairs(
+        ensure, cfg.train_file, cfg.eval_file, seed=cfg.seed)
+    if cfg.on_bad_rows == "error":  # fail fast on what needs no tokenizer, before SFT may have to run
+        preferences.check_pairs(train_rows, source, "error")
+        preferences.check_pairs(eval_rows_pairs[: cfg.eval_pairs], eval_source, "error")
     task = tasks.get_task(res.task.name)
     has_gold = hasattr(task, "gold_key")
     eval_prompts = tasks.load_split(res.task, "eval") if has_gold else []
@@ -277,8 +275,10 @@ def train(res: Resolved, ensure) -> Path:
     _, train_pairs, bad = preferences.check_pairs(train_rows, source, cfg.on_bad_rows, tokenizer, res.model.max_length)
     if bad.count:
         say_all(f"[dpo] {bad.summary()}")
-    _, eval_pairs, bad_eval = preferences.check_pairs(eval_rows_pairs[: cfg.eval_pairs], "held-out pairs", "skip",
-                                                      tokenizer, res.model.max_length)
+    _, eval_pairs, bad = preferences.check_pairs(eval_rows_pairs[: cfg.eval_pairs], eval_source, cfg.on_bad_rows,
+                                                 tokenizer, res.model.max_length)
+    if bad.count:
+        say_all(f"[dpo] held-out pairs: {bad.summary()}")
     if len(train_pairs) < cfg.batch_size:
         raise loop.TrainingError(f"only {len(train_pairs)} usable preference pairs in {source}, fewer than "
                                  f"batch_size={cfg.batch_size}")

@@ -126,6 +126,45 @@ def test_lean_logits_match_hf_prefill_and_decode(kind, trained):
             torch.testing.assert_close(got, ref[:, T + s], atol=1e-4, rtol=0)
 
 
+def test_lean_prefill_chunks_match_hf(trained):
+    """Many prompts of very different lengths: prefill runs in several length-bucketed chunks."""
+    model = trained[0]
+    g = torch.Generator().manual_seed(2)
+    lens = sorted(int(n) for n in torch.randint(1, 60, (24,), generator=g))
+    seqs = [torch.randint(3, model.config.vocab_size, (n,), generator=g).tolist() for n in lens]
+    ids, am = _left_pad(seqs)
+    pos = (am.cumsum(-1) - 1).clamp(min=0)
+    with torch.no_grad():
+        ref = model(input_ids=ids, attention_mask=am, position_ids=pos).logits[:, -1]
+    lean = LeanLlama(model)
+    assert len(lean._prefill_chunks(lens)) > 1
+    with torch.inference_mode():
+        lean.start(len(seqs), ids.shape[1] + 1, ids.shape[1] + 2)
+        got = lean.prefill(ids, am.bool(), pos, torch.arange(len(seqs)))
+        torch.testing.assert_close(got, ref, atol=1e-4, rtol=0)
+        # The cache columns left of each chunk are finite: one decode step stays exact.
+        nxt = torch.randint(3, model.config.vocab_size, (len(seqs), 1), generator=g)
+        got = lean.decode(nxt, am.sum(-1), ids.shape[1])
+    with torch.no_grad():
+        ids2, am2 = torch.cat([ids, nxt], 1), torch.cat([am, torch.ones_like(nxt)], 1)
+        ref2 = model(input_ids=ids2, attention_mask=am2, position_ids=(am2.cumsum(-1) - 1).clamp(min=0)).logits
+    torch.testing.assert_close(got, ref2[:, -1], atol=1e-4, rtol=0)
+
+
+def test_weight_updates_are_seen(trained):
+    """The fused lean weights are cached per model and rebuilt after an optimizer step."""
+    model, tok, prompts = trained
+    model = __import__("copy").deepcopy(model)
+    before = generate(model, tok, prompts, greedy=True, max_new_tokens=8)
+    with torch.no_grad():
+        for p in model.model.layers[0].mlp.parameters():
+            p.mul_(-3.0)  # in place, like an optimizer step
+    after = generate(model, tok, prompts, greedy=True, max_new_tokens=8)
+    ref = generate(model, tok, prompts, greedy=True, max_new_tokens=8, backend="hf")
+    assert [r.completion_ids for r in after] == [r.completion_ids for r in ref]
+    assert [r.completion_ids for r in after] != [r.completion_ids for r in before]
+
+
 def test_backend_selection_reasons(trained):
     model = trained[0]
     assert select_backend(model, 64)[0].name == "lean"

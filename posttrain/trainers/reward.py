@@ -1,0 +1,222 @@
+"""Reward model: a scalar head on the SFT model trained with the Bradley-Terry loss on preference pairs.
+
+CPU:        posttrain rm --recipe tiny-summarize          (~1 min on 2 cores once SFT and prefs exist)
+Multi-GPU:  accelerate launch --num_processes 8 -m posttrain rm --recipe tiny-summarize model.path=/path/to/hf-model
+
+Reads top to bottom: load pairs (the prefs stage output, or rm.train_file) and check them; load
+the SFT model as `AutoModelForSequenceClassification(num_labels=1)` (the transformer is the SFT
+model's, the one-output `score` head is new, seeded); loop { batch of pairs -> one forward over
+chosen and rejected -> bradley_terry_loss -> optimizer step -> log -> held-out pair accuracy ->
+checkpoint }; save final/ as a HF directory that loads back with
+`AutoModelForSequenceClassification.from_pretrained` and scores the same.
+
+Details:
+- Loss: `posttrain.losses.bradley_terry_loss` (Christiano et al. 2017; Ouyang et al. 2022 eq. 1),
+  mean of -log sigmoid(r_chosen - r_rejected). Metrics: pair accuracy (r_chosen > r_rejected) and
+  margin (mean r_chosen - r_rejected), on training batches and held-out pairs.
+- Input: prompt (with the tokenizer's special tokens) + completion + eos, left-padded; the reward
+  is the head's output at the last token (`posttrain.scoring.reward_forward`, which also documents
+  why that equals HF's own pooling). When the tokenizer pads with eos, the eos is left off so
+  both poolings still agree. `posttrain.scoring.RewardModelScorer` builds inputs the same way.
+- Chosen and rejected go through the model in one forward (concatenated along the batch).
+- Unlike TRL's RewardTrainer we do not truncate long rows: pairs longer than model.max_length
+  are bad rows (`on_bad_rows`: stop naming the row, or skip with a count), as in DPO.
+- Non-finite loss: `loop.optimizer_step` stops before the update; weights are checked before
+  each checkpoint; the last good checkpoint stays intact (resume=true continues from it).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import torch
+
+from posttrain import loop
+from posttrain.config import Resolved, save_resolved
+from posttrain.losses import bradley_terry_loss
+from posttrain.preferences import TokenizedPair
+from posttrain.scoring import left_pad, reward_forward
+
+
+@dataclass
+class RMConfig:
+    train_file: str | None = None
+    """Preference file (JSONL/JSON/Parquet: prompt, chosen, rejected); empty: the prefs stage output (sampled)."""
+    eval_file: str | None = None
+    """Held-out preference file; empty: the prefs stage's eval pairs (or 5% of train_file)."""
+    lr: float = 3e-4
+    """Peak learning rate (AdamW)."""
+    weight_decay: float = 0.0
+    """AdamW weight decay (not applied to norms and embeddings)."""
+    batch_size: int = 32
+    """Pairs per optimizer step (global, across processes)."""
+    micro_batch_size: int = 0
+    """Pairs per forward pass (each is 2 rows); 0 means batch_size."""
+    max_steps: int = 150
+    """Optimizer steps."""
+    warmup_steps: int = 10
+    """Linear warmup steps."""
+    schedule: Literal["cosine", "linear", "constant"] = "cosine"
+    """Learning-rate schedule after warmup."""
+    min_lr_ratio: float = 0.1
+    """Final learning rate as a fraction of the peak (cosine / linear)."""
+    max_grad_norm: float = 1.0
+    """Gradient clipping norm (0 disables)."""
+    log_every: int = 10
+    """Steps between metric lines."""
+    eval_every: int = 50
+    """Steps between held-out pair evaluations (0: only at the end)."""
+    eval_pairs: int = 500
+    """Held-out pairs evaluated."""
+    save_every: int = 50
+    """Steps between checkpoints (0: only at the end)."""
+    keep_checkpoints: int = 2
+    """Checkpoints kept on disk (oldest deleted first)."""
+    on_bad_rows: Literal["error", "skip"] = "error"
+    """Bad pairs (chosen == rejected, empty side, too long): stop with the file and row, or skip with a count."""
+    seed: int = 0
+    """Seed of the head's init and the data order."""
+    resume: bool = False
+    """Continue from the newest checkpoint in the run directory."""
+
+
+def pair_rewards(model, pairs: list[TokenizedPair], pad_id: int) -> torch.Tensor:
+    """(2B,) rewards: chosen rows first, then rejected, in ONE forward over left-padded rows."""
+    from posttrain.logprobs import model_device
+
+    seqs = [p.prompt + p.chosen for p in pairs] + [p.prompt + p.rejected for p in pairs]
+    input_ids, attention_mask = left_pad(seqs, pad_id)  # (2B, T), (2B, T)
+    dev = model_device(model)
+    return reward_forward(model, input_ids.to(dev), attention_mask.to(dev))  # (2B,)
+
+
+@torch.no_grad()
+def heldout_metrics(model, pairs: list[TokenizedPair], pad_id: int, micro: int) -> dict[str, float]:
+    """Bradley-Terry loss, pair accuracy and margin over held-out pairs."""
+    if not pairs:
+        return {}
+    model.eval()
+    sums: dict[str, float] = {}
+    for chunk in loop.chunks(pairs, micro):
+        r = pair_rewards(model, chunk, pad_id)
+        loss, m = bradley_terry_loss(r[: len(chunk)], r[len(chunk):])
+        m["loss"] = float(loss)
+        for k, v in m.items():
+            sums[k] = sums.get(k, 0.0) + v * len(chunk)
+    model.train()
+    return {f"eval/{k}": v / len(pairs) for k, v in sums.items()}
+
+
+def load_reward_init(sft_dir: Path, pad_id: int, seed: int, device):
+    """The SFT transformer under a new one-output head (`AutoModelForSequenceClassification`, seeded init)."""
+    from transformers import AutoModelForSequenceClassification
+
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = AutoModelForSequenceClassification.from_pretrained(str(sft_dir), num_labels=1, dtype=torch.float32,
+                                                                   local_files_only=True)
+    model.config.pad_token_id = pad_id
+    return model.to(device)
+
+
+def train(res: Resolved, ensure) -> Path:
+    """Train a reward model on preference pairs; returns the final HF directory."""
+    from posttrain import preferences
+    from posttrain.models import load_tokenizer, save_model
+
+    cfg: RMConfig = res.stage_cfg
+    run_dir = res.stage_dir()
+    # Data first: a bad row stops the run before the run dir changes.
+    train_rows, eval_rows, source, eval_source = preferences.training_pairs(ensure, cfg.train_file, cfg.eval_file,
+                                                                            seed=cfg.seed)
+    if cfg.on_bad_rows == "error":  # fail fast on what needs no tokenizer, before SFT may have to run
+        preferences.check_pairs(train_rows, source, "error")
+        preferences.check_pairs(eval_rows[: cfg.eval_pairs], eval_source, "error")
+    sft_dir = ensure("sft")
+    tokenizer = load_tokenizer(sft_dir)
+    pad_id = tokenizer.pad_token_id
+    append_eos = tokenizer.eos_token_id != pad_id  # see posttrain.scoring.reward_forward
+    _, train_pairs, bad = preferences.check_pairs(train_rows, source, cfg.on_bad_rows, tokenizer,
+                                                  res.model.max_length, append_eos=append_eos)
+    if bad.count:
+        print(f"[rm] {bad.summary()}")
+    _, eval_pairs, bad = preferences.check_pairs(eval_rows[: cfg.eval_pairs], eval_source, cfg.on_bad_rows,
+                                                 tokenizer, res.model.max_length, append_eos=append_eos)
+    if bad.count:
+        print(f"[rm] held-out pairs: {bad.summary()}")
+    if len(train_pairs) < cfg.batch_size:
+        raise loop.TrainingError(f"only {len(train_pairs)} usable preference pairs in {source}, fewer than "
+                                 f"batch_size={cfg.batch_size}")
+
+    accelerator = loop.setup(cfg.seed, res.run.threads)
+    main = accelerator.is_main_process
+    say = print if main else (lambda *a, **k: None)
+    if main:
+        loop.prepare_run_dir(run_dir, cfg.resume, say)
+        save_resolved(res, run_dir / "config.yaml")
+    accelerator.wait_for_everyone()
+
+    model = load_reward_init(sft_dir, pad_id, cfg.seed, accelerator.device)
+    micro = cfg.micro_batch_size or cfg.batch_size
+    per_process = max(1, cfg.batch_size // accelerator.num_processes)
+    optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
+    scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
+    model, optimizer = accelerator.prepare(model, optimizer)
+    ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
+    metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, main, res.run.quiet, prefix="[rm] ")
+
+    start = 0
+    if cfg.resume:
+        last = ckpt.latest()
+        if last is None:
+            say(f"[rm] resume=true but no checkpoint in {ckpt.dir}; starting from step 0")
+        else:
+            start = ckpt.load(last, model, optimizer, scheduler)["step"]
+            metrics.truncate_after(start)
+            say(f"[rm] resumed from {last} at step {start}")
+
+    say(f"[rm] {len(train_pairs)} training pairs from {source}, {len(eval_pairs)} held-out, batch {cfg.batch_size} "
+        f"(micro {micro}), {cfg.max_steps} steps, lr {cfg.lr}")
+    t0 = time.time()
+    for step in range(start, cfg.max_steps):
+        done = step + 1
+        idx = loop.batch_indices(len(train_pairs), cfg.batch_size, cfg.seed, step,
+                                 accelerator.process_index, accelerator.num_processes)[:per_process]
+        micro_batches = [[train_pairs[i] for i in mi] for mi in loop.chunks(idx, micro)]
+
+        def loss_fn(chunk):
+            r = pair_rewards(model, chunk, pad_id)  # (2b,)
+            loss, m = bradley_terry_loss(r[: len(chunk)], r[len(chunk):])
+            return loss * (len(chunk) / len(idx)), m
+
+        saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
+        try:
+            m = loop.optimizer_step(accelerator, model, optimizer, scheduler, micro_batches, loss_fn,
+                                    cfg.max_grad_norm, done)
+            if saving and not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
+                raise loop.TrainingError(f"non-finite weights after step {done}; stopping without saving them")
+        except loop.TrainingError as e:
+            last = ckpt.latest()
+            raise loop.TrainingError(f"{e} ({f'last good checkpoint: {last}' if last else 'no checkpoint yet'})") from None
+        if done % cfg.log_every == 0 or done == cfg.max_steps:
+            metrics.log(done, m)
+        if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps) or done == cfg.max_steps:
+            ev = heldout_metrics(model, eval_pairs, pad_id, micro)
+            metrics.log(done, ev, console=False)
+            if ev:
+                say(f"[rm] step {done}: held-out pair accuracy {ev['eval/accuracy']:.3f}, margin {ev['eval/margin']:.3f}")
+        if saving:
+            ckpt.save(done, model, optimizer, scheduler, {"step": done})
+
+    final = run_dir / "final"
+    if main:
+        save_model(accelerator.unwrap_model(model), tokenizer, final)
+        ev = heldout_metrics(accelerator.unwrap_model(model), eval_pairs, pad_id, micro)
+        loop.write_json(run_dir / "eval.json", {"model": str(final), "heldout": ev, "train_pairs": len(train_pairs),
+                                               "seconds": round(time.time() - t0, 1)})
+        say(f"[rm] saved {final}" + (f" (held-out pair accuracy {ev['eval/accuracy']:.3f} on {len(eval_pairs)} pairs)"
+                                     if ev else ""))
+    accelerator.wait_for_everyone()
+    return final

@@ -1,0 +1,192 @@
+"""DPO on a tiny model: one forward = two forwards, precomputed = live reference, it learns, bad rows, NaN, resume, online."""
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from posttrain.cli import main
+from posttrain.tasks import summarize
+
+
+def _pairs(n: int, seed: int, split: str = "train") -> list[dict]:
+    """chosen: the concise summary; rejected: the same plus a sentence (a systematic, learnable contrast)."""
+    rows = summarize.make_examples(n, seed, split)
+    return [{"prompt": r["prompt"], "chosen": " " + r["meta"]["concise_summary"],
+             "rejected": " " + r["meta"]["concise_summary"] + " The weather was warm that day.", "meta": r["meta"]}
+            for r in rows]
+
+
+def _write(path: Path, rows: list[dict]) -> Path:
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return path
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """A random tiny 'SFT' model (tokenizer trained on the task) and train / held-out preference files."""
+    from posttrain.models import bootstrap
+
+    root = tmp_path_factory.mktemp("dpo")
+    bootstrap("tiny", summarize.corpus(200, 0), root / "sft", vocab_size=384, seed=0, max_length=256)
+    return {"sft": root / "sft", "train": _write(root / "train.jsonl", _pairs(160, 0)),
+            "eval": _write(root / "eval.jsonl", _pairs(32, 0, "eval"))}
+
+
+def _args(world, out: Path, *extra: str, train: Path | None = None) -> list[str]:
+    sft = out / "tiny-summarize" / "sft" / "final"
+    if not sft.exists():
+        sft.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copytree(world["sft"], sft)  # the stage finds its "SFT model" and never runs SFT
+    return ["dpo", "--recipe", "tiny-summarize", f"run.output_dir={out}", f"train_file={train or world['train']}",
+            f"eval_file={world['eval']}", "batch_size=8", "max_steps=4", "warmup_steps=0", "log_every=1",
+            "eval_every=0", "eval_rows=8", "final_eval_rows=8", "max_new_tokens=12", "proxy_rm=none",
+            "task.n_eval=16", "run.quiet=true", *extra]
+
+
+def _metrics(out: Path) -> list[dict]:
+    return [json.loads(l) for l in (out / "tiny-summarize" / "dpo" / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_one_forward_over_chosen_and_rejected_equals_two(world):
+    from posttrain.logprobs import masked_sum, sequence_logprobs
+    from posttrain.models import load_model, load_tokenizer
+    from posttrain.preferences import check_pairs, collate_pairs, read_pairs
+    from posttrain.trainers.dpo import pair_logps
+
+    model, tok = load_model(world["sft"]), load_tokenizer(world["sft"])
+    _, pairs, _ = check_pairs(read_pairs(world["train"])[:6], "t", "error", tok, 256)
+    together, n = pair_logps(model, collate_pairs(pairs, tok.pad_token_id))  # (12,)
+    for side, sl in (("chosen", slice(0, 6)), ("rejected", slice(6, 12))):
+        # each side alone, left-padded this time (different padding, same numbers)
+        seqs = [p.prompt + getattr(p, side) for p in pairs]
+        T = max(map(len, seqs))
+        ids = torch.zeros(6, T, dtype=torch.long)
+        am = torch.zeros(6, T, dtype=torch.long)
+        cm = torch.zeros(6, T, dtype=torch.bool)
+        for i, (p, s) in enumerate(zip(pairs, seqs)):
+            ids[i, T - len(s):] = torch.tensor(s)
+            am[i, T - len(s):] = 1
+            cm[i, T - len(getattr(p, side)):] = True
+        with torch.no_grad():
+            lp, _ = sequence_logprobs(model, ids, am, cm)
+        assert torch.allclose(together[sl].detach(), masked_sum(lp, cm, -1), atol=1e-4), side
+        assert n[sl].tolist() == [len(getattr(p, side)) for p in pairs]
+
+
+def test_precomputed_and_live_reference_give_the_same_loss_at_step_0(world, tmp_path):
+    for loss_type in ("sigmoid", "ipo"):
+        got = {}
+        for ref in ("precomputed", "live"):
+            out = tmp_path / f"{loss_type}-{ref}"
+            assert main(_args(world, out, "max_steps=1", f"reference={ref}", f"loss_type={loss_type}",
+                              "eval_every=1", "final_eval_rows=0")) == 0
+            m = _metrics(out)
+            got[ref] = ([r for r in m if "loss" in r][0]["loss"], [r for r in m if "eval/loss" in r][0]["eval/loss"])
+        assert got["precomputed"] == pytest.approx(got["live"], rel=1e-5, abs=1e-6), loss_type
+        if loss_type == "sigmoid":
+            assert got["live"][1] == pytest.approx(0.6931, abs=1e-3)  # policy == reference at step 0: log 2
+
+
+def test_dpo_learns_and_saves_a_loadable_model(world, tmp_path, capsys):
+    out = tmp_path / "learn"
+    assert main(_args(world, out, "max_steps=24", "lr=1e-3", "eval_every=12", "chosen_nll_weight=0.1")) == 0
+    m = _metrics(out)
+    acc = [r["eval/rewards/accuracy"] for r in m if "eval/rewards/accuracy" in r]
+    assert acc[0] == 0.0 and acc[-1] >= 0.9, acc  # step 0: implicit rewards are all 0, so no pair is "right"
+    margins = [r["eval/rewards/margin"] for r in m if "eval/rewards/margin" in r]
+    assert margins[-1] > margins[0] + 0.5
+    assert [r["step"] for r in m if "gold/win_rate" in r] == [0, 12, 24] and all("kl" in r for r in m if "gold/reward" in r)
+    text = capsys.readouterr().out
+    assert "gold win-rate of the DPO model against the SFT model" in text
+    run = out / "tiny-summarize" / "dpo"
+    ev = json.loads((run / "eval.json").read_text())
+    assert 0.0 <= ev["dpo"]["win_rate"] <= 1.0 and ev["sft"]["win_rate"] == 0.5
+    from transformers import AutoModelForCausalLM
+
+    assert AutoModelForCausalLM.from_pretrained(run / "final").config.vocab_size > 0
+    try:
+        import matplotlib  # noqa: F401
+
+        assert (run / "overoptimization.png").stat().st_size > 1000
+    except ImportError:
+        assert "matplotlib is not installed" in text
+
+
+def test_bad_rows_stop_with_file_and_row_or_are_skipped_with_a_count(world, tmp_path, capsys):
+    rows = _pairs(24, 3)
+    rows[2]["rejected"] = rows[2]["chosen"]
+    rows[5]["chosen"] = " "
+    rows[9]["rejected"] = " word" * 400
+    bad = _write(tmp_path / "bad.jsonl", rows)
+    assert main(_args(world, tmp_path / "a", train=bad)) == 2
+    assert f"{bad}: row 3: field 'rejected': identical to 'chosen'" in capsys.readouterr().err
+    assert not (tmp_path / "a" / "tiny-summarize" / "dpo").exists()  # stopped before touching the run dir
+    rows[2]["rejected"] += " Different now."
+    rows[5]["chosen"] = " Fine."
+    assert main(_args(world, tmp_path / "b", train=_write(tmp_path / "long.jsonl", rows))) == 2
+    assert "long.jsonl: row 10: prompt + completion is" in capsys.readouterr().err
+    assert main(_args(world, tmp_path / "c", "on_bad_rows=skip", "max_steps=1", "final_eval_rows=0", train=bad)) == 0
+    assert (f"skipped 3 bad rows of {bad}: 1 identical pair (row 3); 1 empty (row 6); 1 too long (row 10)"
+            in capsys.readouterr().out)
+
+
+def test_injected_nan_stops_with_the_step_and_keeps_the_last_checkpoint(world, tmp_path, capsys, monkeypatch):
+    import posttrain.trainers.dpo as dpo
+
+    calls = {"n": 0}
+    real = dpo.dpo_loss
+
+    def flaky(*a, **k):
+        calls["n"] += 1
+        loss, m = real(*a, **k)
+        return (loss * float("nan") if calls["n"] == 4 else loss), m
+
+    monkeypatch.setattr(dpo, "dpo_loss", flaky)
+    out = tmp_path / "nan"
+    assert main(_args(world, out, "max_steps=6", "save_every=1", "keep_checkpoints=10")) == 1
+    err = capsys.readouterr().err
+    ckpts = out / "tiny-summarize" / "dpo" / "checkpoints"
+    assert "non-finite loss (nan) at step 4" in err and f"last good checkpoint: {ckpts / 'step-000003'}" in err
+    assert sorted(p.name for p in ckpts.glob("step-*")) == ["step-000001", "step-000002", "step-000003"]
+    state = torch.load(ckpts / "step-000003" / "state.pt", weights_only=False)
+    assert state["step"] == 3 and all(torch.isfinite(v).all() for v in state["model"].values())
+    assert not (out / "tiny-summarize" / "dpo" / "final").exists()
+
+
+def test_huge_learning_rate_stops_and_never_checkpoints_broken_weights(world, tmp_path, capsys):
+    out = tmp_path / "lr"
+    assert main(_args(world, out, "lr=1e30", "max_steps=6", "save_every=1", "keep_checkpoints=10")) == 1
+    err = capsys.readouterr().err
+    assert "training stopped: non-finite" in err and "at step" in err
+    for p in (out / "tiny-summarize" / "dpo" / "checkpoints").glob("step-*"):
+        state = torch.load(p / "state.pt", weights_only=False)
+        assert all(torch.isfinite(v).all() for v in state["model"].values()), p
+
+
+def test_resume_continues_exactly(world, tmp_path):
+    from safetensors.torch import load_file
+
+    common = ("schedule=constant", "lr=5e-4", "final_eval_rows=0")
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    assert main(_args(world, full, "max_steps=6", *common)) == 0
+    assert main(_args(world, cut, "max_steps=3", "save_every=3", *common)) == 0
+    assert main(_args(world, cut, "max_steps=6", "resume=true", *common)) == 0
+    a = load_file(full / "tiny-summarize" / "dpo" / "final" / "model.safetensors")
+    b = load_file(cut / "tiny-summarize" / "dpo" / "final" / "model.safetensors")
+    for k in a:
+        assert torch.allclose(a[k], b[k], atol=1e-5), k
+    steps = [r["step"] for r in _metrics(cut) if "loss" in r]
+    assert steps == [1, 2, 3, 4, 5, 6]
+
+
+def test_online_dpo_regenerates_pairs_from_the_policy(world, tmp_path, capsys):
+    out = tmp_path / "online"
+    assert main(_args(world, out, "online=true", "online_every=2", "online_prompts=24", "online_samples=4",
+                      "max_steps=4", "batch_size=4", "task.n_train=60", "save_every=2")) == 0
+    rows = [r for r in _metrics(out) if "online/pairs" in r]
+    assert [r["step"] for r in rows] == [2] and rows[0]["online/pairs"] >= 4
+    assert "online pairs regenerated from the policy" in capsys.readouterr().out
+    state = torch.load(out / "tiny-summarize" / "dpo" / "checkpoints" / "step-000004" / "state.pt", weights_only=False)
+    assert state["extra"]["online_pool"]["start"] == 2  # the pool travels with the checkpoint (exact resume)
