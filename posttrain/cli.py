@@ -21,7 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from posttrain.config import ConfigError, Resolved, describe_fields, list_recipes, resolve, SHARED_SECTIONS
+from posttrain.config import (SHARED_SECTIONS, ConfigError, Resolved, check_stage_sections, describe_fields,
+                              list_recipes, resolve)
 
 
 # ----------------------------------------------------------------------------- eval stage config
@@ -206,6 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("overrides", nargs="*", help="key=value config overrides")
         args = p.parse_args(rest)
         res = resolve(args.recipe, cmd, cfg_cls, args.overrides)
+        check_stage_sections(res, {name: st.load()[0] for name, st in STAGES.items() if name in res.raw_recipe})
         _quiet_libraries()
         run(res, lambda name: ensure_stage(res, name))
         return 0

@@ -65,6 +65,7 @@ class RunConfig:
 
 
 SHARED_SECTIONS: dict[str, type] = {"task": TaskConfig, "model": ModelConfig, "run": RunConfig}
+STAGE_SECTIONS = ("sft", "prefs", "rm", "dpo", "ppo", "grpo", "eval")
 
 
 # ----------------------------------------------------------------------------- type checking
@@ -283,7 +284,7 @@ class Resolved:
 def resolve(recipe: str, stage: str, stage_cls: type, overrides: list[str] | None = None) -> Resolved:
     """Defaults < recipe < overrides, strictly checked."""
     name, raw = load_recipe(recipe)
-    known = set(SHARED_SECTIONS) | {"sft", "rm", "dpo", "ppo", "grpo", "eval", "prefs", "description"}
+    known = set(SHARED_SECTIONS) | set(STAGE_SECTIONS) | {"description"}
     for key in raw:
         if key not in known:
             raise ConfigError(f"unknown recipe section {key!r} in {name}; valid sections: {', '.join(sorted(known))}")
@@ -305,11 +306,31 @@ def resolve(recipe: str, stage: str, stage_cls: type, overrides: list[str] | Non
             merge_into(shared[head], _nest(rest, value), head)
         elif head == "model" and not rest:
             merge_into(shared["model"], {"path": value}, "model")  # `model=PATH` sugar
+        elif head in STAGE_SECTIONS and rest:
+            # Another stage's field (e.g. `sft.max_steps=50` while running dpo): it configures that
+            # stage when this one builds it first. Checked by `check_stage_sections` before anything runs.
+            raw = dict(raw)
+            raw[head] = _deep_merge(raw.get(head) or {}, _nest(rest, value))
         else:
             valid = ", ".join(sorted(stage_fields))
             raise ConfigError(f"unknown config key {key!r} for stage {stage!r}; valid keys: {valid} "
                               f"(or dotted: task.*, model.*, run.*, {stage}.*)")
     return Resolved(name, stage, shared["task"], shared["model"], shared["run"], stage_cfg, raw)
+
+
+def _deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def check_stage_sections(res: "Resolved", stage_classes: dict[str, type]) -> None:
+    """Strictly check every stage section of the recipe (and its command-line overrides), not only the
+    stage being run: a typo in `sft:` must stop `posttrain dpo` before any model loads."""
+    for name, cls in stage_classes.items():
+        if name != res.stage and res.raw_recipe.get(name) is not None:
+            res.for_stage(name, cls)
 
 
 def _nest(dotted: str, value: Any) -> dict[str, Any]:

@@ -57,19 +57,26 @@ def _num(v: Any) -> str:
 
 # ----------------------------------------------------------------------------- preference training (DPO, PPO)
 def compare_policy(task_name: str, model, tokenizer, rows: list[dict[str, Any]], baseline: list[str], *,
-                   max_new_tokens: int = 64, proxy=None, gold_length_weight: float = 2.0) -> dict[str, Any]:
-    """Gold metrics of `model`'s greedy completions on `rows`, its gold win-rate against `baseline`
-    (completions of the same rows, e.g. the SFT model's; ties count half), the mean gold reward
-    (`scoring.GoldScorer`) and, with a `proxy` scorer (a reward model), the mean proxy reward.
-    Returns the task's metrics plus win_rate, gold_reward, proxy_reward (when a proxy is given) and
-    "_completions"."""
+                   max_new_tokens: int = 64, proxy=None, gold_length_weight: float = 2.0,
+                   completions: list[str] | None = None) -> dict[str, Any]:
+    """Gold metrics of `model`'s greedy completions on `rows` (or of the `completions` given), their gold
+    win-rate against `baseline` (completions of the same rows, e.g. the SFT model's; ties count half),
+    the mean gold reward (`scoring.GoldScorer`) and, with a `proxy` scorer (a reward model), the mean
+    proxy reward.
+    Returns the task's metrics plus win_rate (and the wins / ties / losses behind it when the task
+    has `gold_prefer`), gold_reward, proxy_reward (when a proxy is given) and "_completions"."""
+    from posttrain import tasks
     from posttrain.scoring import GoldScorer
 
-    out = evaluate_model(task_name, model, tokenizer, rows, max_new_tokens=max_new_tokens)
+    out = evaluate_model(task_name, model, tokenizer, rows, max_new_tokens=max_new_tokens, completions=completions)
     comps = out["_completions"]
     prompts = [r["prompt"] for r in rows]
     metas = [r["meta"] for r in rows]
     out["win_rate"] = win_rate(task_name, rows, comps, baseline)
+    task = tasks.get_task(task_name)
+    if hasattr(task, "gold_prefer"):  # the counts behind the rate: against a strong baseline most are ties
+        prefs = [task.gold_prefer(m, c, b) for m, c, b in zip(metas, comps, baseline)]
+        out.update(wins=prefs.count(1), ties=prefs.count(0), losses=prefs.count(-1))
     out["gold_reward"] = GoldScorer(task_name, gold_length_weight).score(prompts, comps, metas).mean()
     if proxy is not None:
         out["proxy_reward"] = proxy.score(prompts, comps, metas).mean()
@@ -134,7 +141,8 @@ def plot_gold_vs_proxy(metrics: list[dict[str, Any]], path, *, title: str = "") 
             ax2.plot(x, [p if p is not None else float("nan") for p in proxy], "s--", color="tab:blue",
                      label="proxy (RM) reward")
             ax2.set_ylabel("proxy (RM) reward", color="tab:blue")
-    fig.suptitle(title or ("gold vs proxy reward" if has_proxy else "gold reward (no reward model: no proxy curve)"))
+    what = "gold vs proxy (reward model) reward" if has_proxy else "gold reward (no reward model: no proxy curve)"
+    fig.suptitle(f"{title}: {what}" if title else what)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -3,7 +3,7 @@
 Every trainer composes these; none of them owns the loop. The same code runs on one CPU
 process and under `accelerate launch` (DDP/FSDP/DeepSpeed): the Accelerator decides.
 
-- `setup(seed, threads)`: seeds python/numpy/torch, creates the `Accelerator`.
+- `setup(seed, threads)`: seeds python/numpy/torch, tunes glibc malloc, creates the `Accelerator`.
 - `build_optimizer` / `build_scheduler`: AdamW (no weight decay on norms, biases and
   embeddings), linear warmup then cosine / linear / constant.
 - `optimizer_step`: gradient accumulation over micro-batches (no gradient sync on all but
@@ -22,7 +22,6 @@ import math
 import os
 import random
 import shutil
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -36,25 +35,6 @@ class TrainingError(RuntimeError):
 
 
 # ----------------------------------------------------------------------------- setup
-def tune_malloc() -> None:
-    """Raise glibc's mmap/trim thresholds: measured here to speed up CPU forward passes.
-
-    Without it glibc returns freed activation buffers to the OS and page-faults them back
-    on the next step. No-op off glibc.
-    """
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-        libc.mallopt(M_MMAP_THRESHOLD, 256 * 1024 * 1024)
-        libc.mallopt(M_TRIM_THRESHOLD, 1024 * 1024 * 1024)
-    except (OSError, AttributeError):
-        pass
-
-
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % 2**32)
@@ -65,7 +45,9 @@ def setup(seed: int, threads: int = 0, mixed_precision: str = "no"):
     """Seed everything and return an `accelerate.Accelerator` (CPU unless launched on GPUs)."""
     from accelerate import Accelerator
 
-    tune_malloc()
+    from posttrain.rollout.engine import tune_malloc
+
+    tune_malloc()  # measured faster forwards on CPU (see its docstring); process-wide, once
     if threads > 0:
         torch.set_num_threads(threads)
     accelerator = Accelerator(mixed_precision=mixed_precision)

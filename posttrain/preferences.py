@@ -72,8 +72,8 @@ class PrefsConfig:
     """Held-out prompts to sample eval pairs for (the first n of the task's eval split)."""
     samples_per_prompt: int = 8
     """Completions sampled per prompt (K); pairs are formed among them."""
-    pairs_per_prompt: int = 1
-    """Pairs per prompt: 1 = best vs worst; more adds best vs random others with a lower key."""
+    pairs_per_prompt: int = 2
+    """Pairs per prompt: best vs worst, then best vs the runner-up (hard negative), then best vs random lower."""
     temperature: float = 1.0
     """Sampling temperature."""
     top_p: float = 1.0
@@ -176,11 +176,11 @@ def sample_pairs(model, tokenizer, rows: list[dict], labeler, *, prompt_keys: Se
         for c, r in pairs:
             meta = dict(row.get("meta") or {})
             meta["pair"] = {"prompt_index": int(pkey), "chosen_sample": c, "rejected_sample": r,
-                            "chosen_key": _jsonable(key_i[c]), "rejected_key": _jsonable(key_i[r]), "strategy": strategy}
+                            "chosen_key": _jsonable(key_i[c]), "rejected_key": _jsonable(key_i[r]),
+                            "strategy": strategy}
             out.append({"prompt": row["prompt"], "chosen": ts[c], "rejected": ts[r], "meta": meta})
     stats = {"prompts": len(rows), "samples": len(rollouts), "pairs": len(out), "prompts_all_tied": tied,
-             "empty_samples": empty,
-             "finish_length": sum(ro.finish_reason == "length" for ro in rollouts)}
+             "empty_samples": empty, "finish_length": sum(ro.finish_reason == "length" for ro in rollouts)}
     return out, stats
 
 
@@ -280,7 +280,8 @@ class TokenizedPair:
 
 
 def check_pairs(rows: list[dict], source: str, on_bad: Literal["error", "skip"], tokenizer=None,
-                max_length: int | None = None, append_eos: bool = True) -> tuple[list[dict], list[TokenizedPair], BadRows]:
+                max_length: int | None = None, append_eos: bool = True
+                ) -> tuple[list[dict], list[TokenizedPair], BadRows]:
     """Drop or refuse bad pairs; tokenize the good ones when a tokenizer is given.
 
     Bad: an empty (whitespace-only) prompt, chosen or rejected; chosen == rejected (after

@@ -118,7 +118,7 @@ def load_reward_model(model_dir: str | Path, device: str | torch.device = "cpu")
 
 
 def rm_token_ids(tokenizer, prompts: Sequence[str], completions: Sequence[str]) -> list[list[int]]:
-    """prompt (with special tokens) + completion (+ eos unless the tokenizer pads with eos), as the RM trainer builds them."""
+    """prompt (special tokens) + completion (+ eos unless the tokenizer pads with eos), as the RM trainer builds them."""
     p = tokenizer(list(prompts), add_special_tokens=True)["input_ids"]
     c = tokenizer(list(completions), add_special_tokens=False)["input_ids"]
     eos = [tokenizer.eos_token_id] if tokenizer.eos_token_id != tokenizer.pad_token_id else []

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import random
 import statistics
@@ -38,6 +39,11 @@ from posttrain.rollout import generate, select_backend  # noqa: E402
 
 
 # ------------------------------------------------------------------ shared helpers
+
+
+def _load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
 
 
 def matmul_gflops(n: int, repeats: int, device: str = "cpu") -> float:
@@ -165,7 +171,7 @@ def main(argv=None) -> int:
     ap.add_argument("--presets", default="tiny,small", help="comma-separated model presets")
     ap.add_argument("--batches", default="1,16,64", help="comma-separated batch sizes")
     ap.add_argument("--max-new-tokens", type=int, default=64)
-    ap.add_argument("--repeats", type=int, default=None, help="timed runs per implementation (default 3 quick, 7)")
+    ap.add_argument("--repeats", type=int, default=None, help="timed runs per implementation (default 5 quick, 9)")
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = ap.parse_args(argv)
     args.presets = [p for p in args.presets.split(",") if p]
@@ -173,16 +179,20 @@ def main(argv=None) -> int:
     if unknown:
         ap.error(f"unknown preset(s) {unknown}; choose from {sorted(PRESETS)}")
     args.batches = [int(b) for b in args.batches.split(",") if b]
-    args.repeats = args.repeats or (3 if args.quick else 7)
+    args.repeats = args.repeats or (5 if args.quick else 9)
     torch.set_num_threads(args.threads)
     print(f"posttrain bench: torch {torch.__version__}, {platform.processor() or platform.machine()}, "
-          f"{torch.get_num_threads()} threads, device {args.device}, {'quick' if args.quick else 'full'}")
+          f"{torch.get_num_threads()} threads, device {args.device}, {'quick' if args.quick else 'full'}; "
+          f"load average {_load()}")
     t0 = time.perf_counter()
     results = {}
     for name in args.only or list(SECTIONS):
         print(f"\n== {name} ==")
         results[name] = SECTIONS[name](args)
-    print(f"\ntotal {time.perf_counter() - t0:.0f} s")
+    print(f"\ntotal {time.perf_counter() - t0:.0f} s; load average {_load()}")
+    if os.getloadavg()[0] > 1.5:
+        print("note: other processes were using the CPU; with shared cores, OpenMP threads stall at barriers "
+              "and timings (both columns) swing widely. Rerun on an idle machine for stable ratios.")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(dict(threads=args.threads, device=args.device, quick=args.quick,

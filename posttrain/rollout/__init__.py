@@ -33,13 +33,23 @@ Contract
   a token only when u falls within that distance of a boundary of the cumulative distribution.
   Greedy decoding has the same caveat for near-ties of the top two logits.
 - Memory. Rows are split into micro-batches with rows * (longest prompt + max_new_tokens) <=
-  max_batch_tokens (default 32768 tokens); the KV cache of a micro-batch is that many token slots
+  max_batch_tokens (default 16384 tokens); the KV cache of a micro-batch is that many token slots
   x layers x 2 x kv_heads x head_dim x dtype bytes (tiny: 4 KiB per slot; small: 18 KiB).
-- Speed path. `select_backend` picks the lean Llama-family forward (`backends.LeanLlama`: fused
-  weights, preallocated cache, see its docstring) when the model supports it, else the HF forward with
-  its own cache (other architectures, peft adapters, quantised layers). Both drop finished rows from
-  the active batch once >= 1/8 of it has finished. Generation runs under `torch.inference_mode`, in eval
-  mode (no dropout). Weights are read at each `generate` call, so a training step in between is seen.
+- Speed path. `select_backend` picks the lean Llama-family forward (`backends.LeanLlama`: fused and
+  pre-transposed weights with norms and the softmax scale folded in, RoPE as one complex multiply,
+  preallocated KV cache written in place, explicit GEMV attention; see its docstring) when the model
+  supports it (llama / mistral / qwen2 types, fp32, plain nn.Linear), else the model's own forward
+  with its own cache (other architectures, peft adapters, quantised layers, bf16). The reason is
+  returned by `select_backend` and logged at DEBUG. Both paths drop finished rows from the active
+  batch once >= 1/8 of it has finished (the lean path moves live rows into the holes: a compaction
+  copies only as many cache rows as finished). Prompts are sorted by length before micro-batching
+  and, on the lean path, prefilled in length buckets. The per-token loop runs under
+  `torch.inference_mode` in eval mode (no dropout) and does per step: one forward, one sampler call
+  (softmax, cumsum, searchsorted), three buffer writes, and one host sync for EOS (and one for stop
+  candidates when stop strings are set). Fused weights are cached per model and rebuilt when any
+  parameter's version counter moved, so an optimizer step between calls is always seen. Not
+  thread-safe: one `generate` at a time per model. `tune_malloc` raises glibc's malloc thresholds
+  once per process (see there). Measured speed: `scripts/bench.py`.
 """
 from .backends import LeanLlama, lean_support
 from .engine import DEFAULT_MAX_BATCH_TOKENS, context_length, generate, select_backend, tune_malloc

@@ -59,7 +59,7 @@ def lean_support(model, max_len: int) -> tuple[bool, str]:
     if mt not in LEAN_MODEL_TYPES:
         return False, f"model_type {mt!r} is not one of {LEAN_MODEL_TYPES}"
     base = getattr(model, "model", None)
-    if base is None or not isinstance(getattr(model, "lm_head", None), nn.Linear) or type(model.lm_head) is not nn.Linear:
+    if base is None or type(getattr(model, "lm_head", None)) is not nn.Linear:
         return False, "no plain lm_head / .model"
     if model.lm_head.weight.dtype != torch.float32:
         return False, f"dtype {model.lm_head.weight.dtype} (the lean path is fp32)"
@@ -79,6 +79,11 @@ def lean_support(model, max_len: int) -> tuple[bool, str]:
         window = None
     if window is not None and max_len > window:
         return False, f"sequence length {max_len} exceeds the sliding window {window}"
+    if any(hasattr(m, "_hf_hook") for m in model.modules()):
+        return False, "accelerate device-map hooks (offloaded or dispatched weights)"
+    devices = {p.device for p in model.parameters()}
+    if len(devices) != 1 or next(iter(devices)).type == "meta":
+        return False, f"weights on several devices or on meta ({sorted(str(d) for d in devices)})"
     for layer in base.layers:
         att, mlp = layer.self_attn, layer.mlp
         lins = [att.q_proj, att.k_proj, att.v_proj, att.o_proj, mlp.gate_proj, mlp.up_proj, mlp.down_proj]
@@ -155,6 +160,7 @@ class LeanLlama:
         self.head_w = t(model.lm_head.weight.detach().float() * gf)  # (d, V)
         self.head_b = None if model.lm_head.bias is None else model.lm_head.bias.detach()
         self._bound = -1
+        self._cis = None
 
     # ------------------------------------------------------------------ helpers
     @staticmethod
@@ -187,22 +193,25 @@ class LeanLlama:
         n, Hkv, D = len(self.layers), self.Hkv, self.D
         self.k = torch.empty(n, rows, Hkv, cols, D, device=self.device, dtype=self.dtype)
         self.v = torch.empty(n, rows, Hkv, cols, D, device=self.device, dtype=self.dtype)
-        self.kc = torch.view_as_complex(self.k.view(n, rows, Hkv, cols, D // 2, 2))  # complex view of k
+        self.kc = torch.view_as_complex(self.k.view(n, rows, Hkv, cols, D // 2, 2))  # complex views
+        self.vc = torch.view_as_complex(self.v.view(n, rows, Hkv, cols, D // 2, 2))
         # Additive key mask per (row, kv head): 0 for real keys, -inf for prompt padding.
         self.key_bias = torch.zeros(rows, Hkv, 1, cols, device=self.device, dtype=self.dtype)
-        self.cis = self._rope_table(max_pos)
+        if self._cis is None or self._cis.shape[0] < max_pos:  # grows, kept across calls
+            self._cis = self._rope_table(max(max_pos, 256))
+        self.cis = self._cis
         self.rows, self.cols = rows, cols
         self._bound = -1
 
     def release(self) -> None:
         """Drop the KV cache (the fused weights stay for the next call)."""
-        self.k = self.v = self.kc = self.key_bias = self.cis = self._views = self._bias = None
+        self.k = self.v = self.kc = self.vc = self.key_bias = self.cis = self._views = self._bias = None
         self._bound = -1
 
     def _bind(self, B: int) -> None:
         """Per-layer views of the first B cache rows, rebuilt only when B changes (finished rows dropped)."""
         Hkv, D, cols = self.Hkv, self.D, self.cols
-        self._views = [(self.kc[li, :B], self.v[li, :B], self.k[li, :B].view(B * Hkv, cols, D).transpose(1, 2),
+        self._views = [(self.kc[li, :B], self.vc[li, :B], self.k[li, :B].view(B * Hkv, cols, D).transpose(1, 2),
                         self.v[li, :B].view(B * Hkv, cols, D)) for li in range(len(self.layers))]
         self._bias = self.key_bias[:B].view(B * Hkv, 1, cols)
         self._bound = B
@@ -311,21 +320,24 @@ class LeanLlama:
         cis = self.cis.index_select(0, pos)[:, None]  # (B, 1, D/2) complex
         bias = self._bias[:, :, :T]  # (B*Hkv, 1, T)
         x = F.embedding(tok.view(B), self.embed)  # (B, d)
-        for layer, (kc, vw, kT, vv) in zip(self.layers, self._views):
+        split = (H, Hkv, Hkv)
+        norm, hypot, bmm, softmax, mul, silu = torch.linalg.vector_norm, torch.hypot, torch.bmm, torch.softmax, \
+            torch.mul, F.silu
+        for layer, (kc, vc, kT, vv) in zip(self.layers, self._views):
             c1, qkv_w, qkv_b, o_w, o_b, c2, gu_w, gu_b, inter, down_w, down_b = layer
-            h = x / torch.hypot(torch.linalg.vector_norm(x, dim=-1, keepdim=True), c1)
+            h = x / hypot(norm(x, 2, -1, True), c1)
             qkv = h @ qkv_w if qkv_b is None else torch.addmm(qkv_b, h, qkv_w)  # (B, NH*D)
-            z = torch.view_as_complex(qkv.view(B, NH, D // 2, 2))  # (B, NH, D/2)
-            q = torch.view_as_real(z[:, :H] * cis).view(BH, rep, D)  # roped q (softmax scale folded in)
-            torch.mul(z[:, H:H + Hkv], cis, out=kc[:, :, col])  # roped k straight into the cache
-            vw[:, :, col] = qkv.view(B, NH, D)[:, H + Hkv:]
-            s = torch.softmax(torch.bmm(q, kT[:, :, :T]).add_(bias), -1)  # (B*Hkv, rep, T)
-            x.addmm_(torch.bmm(s, vv[:, :T]).view(B, HD), o_w)  # residual += attn @ Wo, in place
+            zq, zk, zv = torch.view_as_complex(qkv.view(B, NH, D // 2, 2)).split(split, 1)  # (B, ., D/2) complex
+            q = torch.view_as_real(zq * cis).view(BH, rep, D)  # roped q (softmax scale folded in)
+            mul(zk, cis, out=kc[:, :, col])  # roped k straight into the cache
+            vc[:, :, col] = zv
+            s = softmax(bmm(q, kT[:, :, :T]).add_(bias), -1)  # (B*Hkv, rep, T)
+            x.addmm_(bmm(s, vv[:, :T]).view(B, HD), o_w)  # residual += attn @ Wo, in place
             if o_b is not None:
                 x = x + o_b
-            h = x / torch.hypot(torch.linalg.vector_norm(x, dim=-1, keepdim=True), c2)
-            gu = h @ gu_w if gu_b is None else torch.addmm(gu_b, h, gu_w)  # (B, 2I)
-            x.addmm_(F.silu(gu[:, :inter]).mul_(gu[:, inter:]), down_w)
+            h = x / hypot(norm(x, 2, -1, True), c2)
+            g, u = (h @ gu_w if gu_b is None else torch.addmm(gu_b, h, gu_w)).split(inter, 1)  # (B, I) each
+            x.addmm_(silu(g).mul_(u), down_w)
             if down_b is not None:
                 x = x + down_b
         return self._logits(x)  # (B, V)

@@ -23,8 +23,9 @@ Which log-probs are which:
 
 Saved files (`save_rollouts`): one row per Rollout, JSONL (`.jsonl` / `.json`, written with the
 json module so floats round-trip exactly) or Parquet (`.parquet`, written with `datasets`); both are
-read back with `datasets` (`load_rollouts`, or `datasets.load_dataset("json"/"parquet", ...)`). `extras` is stored as a JSON string column
-(`extras_json`) so rows with different extras keys share one schema.
+read back with `datasets` (`load_rollouts`, or `datasets.load_dataset("json"/"parquet", ...)`).
+`extras` is stored as a JSON string column (`extras_json`) so rows with different extras keys share
+one schema.
 """
 from __future__ import annotations
 

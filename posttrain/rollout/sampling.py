@@ -169,7 +169,8 @@ def stop_candidates(tokenizer, stops: tuple[str, ...], vocab_size: int, device) 
         if any(c.isspace() for c in lasts):
             table = [True] * vocab_size
         else:
-            table = [(not t) or ("\ufffd" in t) or any(c in t for c in lasts) for t in _decode_each(tokenizer, vocab_size)]
+            texts = _decode_each(tokenizer, vocab_size)
+            table = [(not t) or ("\ufffd" in t) or any(c in t for c in lasts) for t in texts]
         per_tok[key] = torch.tensor(table, dtype=torch.bool)
     return per_tok[key].to(device)
 

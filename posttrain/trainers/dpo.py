@@ -1,10 +1,10 @@
-"""Direct Preference Optimization (Rafailov et al. 2023) on preference pairs, with IPO and hinge variants and an online mode.
+"""Direct Preference Optimization (Rafailov et al. 2023) on preference pairs; IPO / hinge variants, an online mode.
 
 CPU:        posttrain dpo --recipe tiny-summarize        (from nothing: SFT, pairs, DPO, eval; see the recipe header)
 Multi-GPU:  accelerate launch --num_processes 8 -m posttrain dpo --recipe tiny-summarize model.path=/path/to/hf-model
 
 Reads top to bottom: load pairs (the prefs stage output, or dpo.train_file) and check them;
-load the SFT model; compute the reference log-probs of every pair ONCE with it (and the SFT
+load the SFT model; compute the reference log-probs of the pairs ONCE with it (and the SFT
 model's greedy completions of the held-out prompts, the win-rate baseline); then train that
 same model as the policy, loop { batch of pairs -> one forward -> dpo_loss -> optimizer step ->
 log -> eval (held-out pairs, gold, proxy RM, KL) -> checkpoint }; save final/ as a HF directory;
@@ -18,13 +18,16 @@ Details, and where they come from:
 - One forward for both sides: chosen rows then rejected rows of a micro-batch are concatenated
   along the batch (TRL's `concatenated_forward`); padding never changes a row's numbers
   (`posttrain.logprobs` positions count real tokens only).
-- Reference (`reference`): "precomputed" (default) runs the SFT model over every training and
-  held-out pair before the first update and keeps only the (N,) log-prob sums, so no reference
-  model sits in memory while training (TRL's `precompute_ref_log_probs`). The policy starts as
+- Reference (`reference`): "precomputed" (default) runs the SFT model over every training pair
+  the run will draw (in online mode: those of the first online_every steps) and every held-out
+  pair before the first update and keeps only the (N,) log-prob sums, so no reference model sits
+  in memory while training (TRL's `precompute_ref_log_probs`). The policy starts as
   that very model, so nothing is loaded twice. "live" keeps a frozen copy and recomputes the
   reference per batch (same numbers, more memory and time; useful for very large pair sets).
   The KL eval and online DPO need reference log-probs of NEW sequences: with "precomputed" the
   reference is loaded from disk for that moment and freed again.
+- `chosen_nll_weight` > 0 adds the per-token NLL of the chosen completions: RPO (Pang et al. 2024,
+  "Iterative Reasoning Preference Optimization"; TRL's `rpo_alpha`). Off by default.
 - Bad rows (`on_bad_rows`): chosen == rejected, an empty side, prompt + completion longer than
   model.max_length: "error" stops before anything runs, naming the file and row; "skip" drops
   them and prints a count per reason with row numbers.
@@ -43,7 +46,7 @@ Details, and where they come from:
 - Online DPO (`online=true`): the first `online_every` steps train on the offline pairs; then every
   `online_every` steps `online_prompts` training prompts are sampled `online_samples` times from the
   current policy (rollout engine, seeded by the refresh index), labelled by the gold preference or
-  the reward model (`online_labeler`), paired best vs worst (`posttrain.preferences.form_pairs`),
+  the reward model (`online_labeler`), paired as the prefs stage does (`preferences.form_pairs`),
   and the next `online_every` steps train on those pairs only. This is a batched form of online
   AI-feedback DPO (Guo et al. 2024, "Direct Language Model Alignment from Online AI Feedback"),
   which labels fresh pairs at every step. The current pool is saved in each checkpoint, so resume
@@ -51,7 +54,6 @@ Details, and where they come from:
 """
 from __future__ import annotations
 
-import math
 import random
 import time
 from dataclasses import dataclass
@@ -118,7 +120,7 @@ class DPOConfig:
     max_new_tokens: int = 64
     """Generation budget for evaluation and online sampling."""
     proxy_rm: str = "auto"
-    """Reward model for proxy scores: auto (runs/<recipe>/rm/final if it exists), none, train (run `rm` first), or a path."""
+    """Proxy reward model: auto (runs/<recipe>/rm/final if it exists), none, train (run `rm` first) or a path."""
     online: bool = False
     """Online DPO: regenerate pairs from the current policy every online_every steps."""
     online_every: int = 20
@@ -126,9 +128,11 @@ class DPOConfig:
     online_labeler: Literal["gold", "rm"] = "gold"
     """Who labels online pairs: the task's gold preference or the reward model."""
     online_prompts: int = 128
-    """Training prompts sampled per regeneration (one best-vs-worst pair each at most)."""
+    """Training prompts sampled per regeneration."""
     online_samples: int = 4
     """Completions per prompt per regeneration."""
+    online_pairs_per_prompt: int = 2
+    """Pairs per prompt per regeneration (as prefs.pairs_per_prompt: best vs worst, then vs the runner-up, ...)."""
     online_temperature: float = 1.0
     """Sampling temperature of online generation."""
     on_bad_rows: Literal["error", "skip"] = "error"
@@ -304,9 +308,16 @@ def train(res: Resolved, ensure) -> Path:
     ref_train = ref_eval = None
     ref_model = None
     if cfg.reference == "precomputed":
-        ref_train = reference_logps(model, train_pairs, pad_id, micro)
+        # Only the pairs this run will draw (online mode uses the offline pairs for its first
+        # online_every steps only); the others get NaN, which would stop the run if ever used.
+        offline_steps = min(cfg.max_steps, cfg.online_every) if cfg.online else cfg.max_steps
+        used = sorted({i for s in range(offline_steps) for i in loop.batch_indices(len(train_pairs), cfg.batch_size,
+                                                                                     cfg.seed, s)})
+        ref_used = reference_logps(model, [train_pairs[i] for i in used], pad_id, micro)
+        ref_train = {k: torch.full((len(train_pairs),), float("nan")).index_copy(0, torch.tensor(used), v)
+                     for k, v in ref_used.items()}
         ref_eval = reference_logps(model, eval_pairs, pad_id, micro)
-        say(f"[dpo] reference log-probs of {len(train_pairs)} training and {len(eval_pairs)} held-out pairs "
+        say(f"[dpo] reference log-probs of {len(used)} training and {len(eval_pairs)} held-out pairs "
             f"precomputed in {time.time() - t0:.1f}s; no reference model is kept in memory")
     else:
         ref_model = load_model(sft_dir, device=accelerator.device).eval().requires_grad_(False)
@@ -336,7 +347,7 @@ def train(res: Resolved, ensure) -> Path:
         else:
             state = ckpt.load(last, model, optimizer, scheduler)
             start = state["step"]
-            if state["extra"].get("online_pool") is not None:
+            if state["extra"].get("online_pool") is not None:  # an online pool (the offline one is rebuilt above)
                 saved = state["extra"]["online_pool"]
                 pool = {"pairs": [TokenizedPair(**p) for p in saved["pairs"]], "ref": saved["ref"],
                         "start": saved["start"], "gen": saved["gen"]}
@@ -356,8 +367,8 @@ def train(res: Resolved, ensure) -> Path:
         policy = accelerator.unwrap_model(model)
         new_rows, st = preferences.sample_pairs(
             policy, tokenizer, rows, labeler, prompt_keys=idx, samples_per_prompt=cfg.online_samples,
-            pairs_per_prompt=1, temperature=cfg.online_temperature, max_new_tokens=cfg.max_new_tokens,
-            seed=cfg.seed * 1_000_003 + gen, strategy=f"online-{cfg.online_labeler}")
+            pairs_per_prompt=cfg.online_pairs_per_prompt, temperature=cfg.online_temperature,
+            max_new_tokens=cfg.max_new_tokens, seed=cfg.seed * 1_000_003 + gen, strategy=f"online-{cfg.online_labeler}")
         for i, r in enumerate(new_rows):
             r["_row"] = i + 1
         _, new_pairs, _ = preferences.check_pairs(new_rows, f"online pairs (step {step})", "skip", tokenizer,
@@ -438,7 +449,7 @@ def train(res: Resolved, ensure) -> Path:
             evaluate(done)
         if saving:
             extra = None
-            if cfg.online:
+            if pool["gen"] > 0:  # pairs generated online: saved, so that a resume trains on the same pairs
                 extra = {"online_pool": {"pairs": [vars(p) for p in pool["pairs"]], "ref": pool["ref"],
                                          "start": pool["start"], "gen": pool["gen"]}}
             ckpt.save(done, model, optimizer, scheduler, {"step": done}, extra)
@@ -449,18 +460,15 @@ def train(res: Resolved, ensure) -> Path:
         save_model(policy, tokenizer, final)
         say(f"[dpo] saved {final}")
         report: dict[str, Any] = {"model": str(final), "reference": str(sft_dir)}
-        rows_m = [loop_row for loop_row in _read_metrics(run_dir / "metrics.jsonl")]
-        note = evaluation.plot_gold_vs_proxy(rows_m, run_dir / "overoptimization.png",
-                                             title=f"{res.recipe}: DPO gold vs proxy reward")
+        note = evaluation.plot_gold_vs_proxy(_read_metrics(run_dir / "metrics.jsonl"),
+                                             run_dir / "overoptimization.png", title=f"{res.recipe} DPO")
         say(f"[dpo] over-optimisation plot: {note}")
         if cfg.final_eval_rows and gen_rows:
             rows = gen_rows[: cfg.final_eval_rows]
-            sft_m = evaluation.evaluate_model(res.task.name, None, tokenizer, rows, completions=baseline[: len(rows)])
-            dpo_m = evaluation.compare_policy(res.task.name, policy, tokenizer, rows, baseline[: len(rows)],
+            base = baseline[: len(rows)]
+            sft_m = evaluation.compare_policy(res.task.name, None, tokenizer, rows, base, proxy=proxy, completions=base)
+            dpo_m = evaluation.compare_policy(res.task.name, policy, tokenizer, rows, base,
                                               max_new_tokens=cfg.max_new_tokens, proxy=proxy)
-            sft_m["win_rate"] = 0.5
-            if proxy is not None:
-                sft_m["proxy_reward"] = proxy.score([r["prompt"] for r in rows], baseline[: len(rows)]).mean()
             reference = reference_for_eval()
             dpo_m["kl"] = evaluation.kl_to_reference(policy, reference, tokenizer, [r["prompt"] for r in rows],
                                                      max_new_tokens=cfg.max_new_tokens, seed=cfg.seed + 7)
@@ -471,8 +479,10 @@ def train(res: Resolved, ensure) -> Path:
                           dpo={k: v for k, v in dpo_m.items() if not k.startswith("_")},
                           samples=[{"prompt": r["prompt"][-200:], "sft": b, "dpo": d}
                                    for r, b, d in zip(rows[:10], baseline, dpo_m["_completions"])])
+            counts = (f": {dpo_m['wins']} wins, {dpo_m['ties']} ties, {dpo_m['losses']} losses"
+                      if "wins" in dpo_m else "")
             say(f"[dpo] gold win-rate of the DPO model against the SFT model: {dpo_m['win_rate']:.3f} "
-                f"({len(rows)} held-out prompts, ties count half)")
+                f"({len(rows)} held-out prompts{counts}; ties count half)")
         loop.write_json(run_dir / "eval.json", report)
     accelerator.wait_for_everyone()
     return final

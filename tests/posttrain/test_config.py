@@ -89,3 +89,23 @@ def test_describe_fields_has_docs():
     rows = {r[0]: r for r in describe_fields(SFTConfig)}
     assert "Peak learning rate" in rows["lr"][3]
     assert rows["schedule"][1].startswith("one of")
+
+
+def test_other_stage_overrides_configure_prerequisites(tmp_path):
+    from posttrain.config import check_stage_sections
+
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("sft:\n  lr: 0.01\n")
+    res = resolve(str(recipe), "eval", _EvalLike, ["sft.max_steps=5"])
+    sft = res.for_stage("sft", SFTConfig)
+    assert sft.stage_cfg.max_steps == 5 and sft.stage_cfg.lr == 0.01  # override merged into the recipe section
+    check_stage_sections(res, {"sft": SFTConfig})
+    bad = resolve(str(recipe), "eval", _EvalLike, ["sft.max_stepz=5"])
+    with pytest.raises(ConfigError, match=r"unknown config key 'sft.max_stepz'"):
+        check_stage_sections(bad, {"sft": SFTConfig})
+
+
+@dataclass
+class _EvalLike:
+    rows: int = 1
+    """rows"""
