@@ -202,7 +202,7 @@ def train(res: Resolved, ensure) -> Path:
             raise loop.TrainingError(f"{e} ({f'last good checkpoint: {last}' if last else 'no checkpoint yet'})") from None
         if done % cfg.log_every == 0 or done == cfg.max_steps:
             metrics.log(done, m)
-        if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps) or done == cfg.max_steps:
+        if done == cfg.max_steps or (cfg.eval_every and done % cfg.eval_every == 0):
             ev = heldout_metrics(model, eval_pairs, pad_id, micro)
             metrics.log(done, ev, console=False)
             if ev:
@@ -213,7 +213,7 @@ def train(res: Resolved, ensure) -> Path:
     final = run_dir / "final"
     if main:
         save_model(accelerator.unwrap_model(model), tokenizer, final)
-        ev = heldout_metrics(accelerator.unwrap_model(model), eval_pairs, pad_id, micro)
+        ev = heldout_metrics(model, eval_pairs, pad_id, micro) if start == cfg.max_steps else ev  # resumed at the end
         loop.write_json(run_dir / "eval.json", {"model": str(final), "heldout": ev, "train_pairs": len(train_pairs),
                                                "seconds": round(time.time() - t0, 1)})
         say(f"[rm] saved {final}" + (f" (held-out pair accuracy {ev['eval/accuracy']:.3f} on {len(eval_pairs)} pairs)"

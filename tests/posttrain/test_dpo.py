@@ -10,6 +10,14 @@ from posttrain.cli import main
 from posttrain.tasks import summarize
 
 
+@pytest.fixture(autouse=True)
+def _keep_torch_threads():
+    """The runs here use run.threads=1 (light on shared CPUs); give later tests their thread count back."""
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
 def _pairs(n: int, seed: int, split: str = "train") -> list[dict]:
     """chosen: the concise summary; rejected: the same plus a sentence (a systematic, learnable contrast)."""
     rows = summarize.make_examples(n, seed, split)
@@ -42,7 +50,8 @@ def _args(world, out: Path, *extra: str, train: Path | None = None) -> list[str]
     return ["dpo", "--recipe", "tiny-summarize", f"run.output_dir={out}", f"train_file={train or world['train']}",
             f"eval_file={world['eval']}", "batch_size=8", "max_steps=4", "warmup_steps=0", "log_every=1",
             "eval_every=0", "eval_rows=8", "final_eval_rows=8", "max_new_tokens=12", "proxy_rm=none", "online=false",
-            "lr=1e-4", "beta=0.1", "task.n_eval=16", "run.quiet=true", *extra]  # pinned: independent of the recipe
+            "lr=1e-4", "beta=0.1", "task.n_eval=16", "run.quiet=true", "run.threads=1",  # pinned: not the recipe's
+            *extra]
 
 
 def _metrics(out: Path) -> list[dict]:
@@ -207,6 +216,38 @@ def test_online_resume_trains_on_the_saved_pairs(world, tmp_path):
         assert torch.allclose(a[k], b[k], atol=1e-5), k
 
 
+def test_gradient_accumulation_matches_one_big_batch(world, tmp_path):
+    first = []
+    for micro in (8, 3):  # 8 pairs per step in one forward, or in forwards of 3 + 3 + 2
+        out = tmp_path / f"micro{micro}"
+        assert main(_args(world, out, "max_steps=1", f"micro_batch_size={micro}", "final_eval_rows=0")) == 0
+        first.append([r for r in _metrics(out) if "loss" in r][0])
+    # loss and gradient norm are those of the whole batch of 8, however it was split
+    assert first[0]["loss"] == pytest.approx(first[1]["loss"], rel=1e-5)
+    assert first[0]["grad_norm"] == pytest.approx(first[1]["grad_norm"], rel=1e-4)
+
+
+def test_online_dpo_with_a_reward_model_labeler_and_proxy_scores(world, tmp_path):
+    from transformers import AutoModelForSequenceClassification
+
+    from posttrain.models import load_tokenizer
+
+    rm_dir = tmp_path / "rm"
+    rm = AutoModelForSequenceClassification.from_pretrained(str(world["sft"]), num_labels=1)
+    rm.config.pad_token_id = load_tokenizer(world["sft"]).pad_token_id
+    rm.save_pretrained(rm_dir)
+    load_tokenizer(world["sft"]).save_pretrained(rm_dir)
+    out = tmp_path / "online-rm"
+    assert main(_args(world, out, "online=true", "online_labeler=rm", f"proxy_rm={rm_dir}", "online_every=2",
+                      "online_prompts=16", "online_samples=4", "max_steps=4", "batch_size=4", "task.n_train=40",
+                      "eval_every=2")) == 0
+    m = _metrics(out)
+    assert [r["step"] for r in m if "online/pairs" in r] == [2]
+    assert [r["step"] for r in m if "proxy/reward" in r] == [0, 2, 4]
+    ev = json.loads((out / "tiny-summarize" / "dpo" / "eval.json").read_text())
+    assert "proxy_reward" in ev["dpo"] and "proxy_reward" in ev["sft"]
+
+
 @pytest.mark.slow
 def test_the_recipe_chain_from_nothing(tmp_path, capsys):
     """`posttrain dpo` on an empty run dir builds base, SFT, pairs and a reward model, then trains online DPO:
@@ -226,7 +267,7 @@ def test_the_recipe_chain_from_nothing(tmp_path, capsys):
     path = tmp_path / "chain.yaml"
     path.write_text("# a small copy of tiny-summarize\n" + yaml.safe_dump(recipe))
     out = tmp_path / "runs"
-    assert main(["dpo", "--recipe", str(path), f"run.output_dir={out}", "run.quiet=true"]) == 0
+    assert main(["dpo", "--recipe", str(path), f"run.output_dir={out}", "run.quiet=true", "run.threads=1"]) == 0
     text = capsys.readouterr().out
     for stage in ("base", "sft", "prefs", "rm"):
         assert (out / "chain" / stage).is_dir(), stage

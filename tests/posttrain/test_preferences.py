@@ -3,12 +3,21 @@ import json
 import random
 
 import pytest
+import torch
 
 from posttrain import preferences
 from posttrain.cli import main
 from posttrain.data import DataError
 from posttrain.preferences import check_pairs, collate_pairs, form_pairs, read_pairs, sample_pairs
 from posttrain.tasks import summarize
+
+
+@pytest.fixture(autouse=True)
+def _keep_torch_threads():
+    """The runs here use run.threads=1 (light on shared CPUs); give later tests their thread count back."""
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")
@@ -115,7 +124,8 @@ def test_prefs_stage_with_user_file(tmp_path, fmt, capsys):
     rows = _pairs(20)
     rows[5]["rejected"] = rows[5]["chosen"]
     src = save_rows(rows, tmp_path / f"prefs.{fmt}")
-    args = ["prefs", "--recipe", "tiny-summarize", f"run.output_dir={tmp_path / 'runs'}", f"train_file={src}"]
+    args = ["prefs", "--recipe", "tiny-summarize", f"run.output_dir={tmp_path / 'runs'}", f"train_file={src}",
+            "run.threads=1"]
     assert main(args) == 2
     assert f"{src}: row 6: field 'rejected': identical to 'chosen'" in capsys.readouterr().err
     assert main(args + ["on_bad_rows=skip", "eval_fraction=0.2"]) == 0

@@ -10,6 +10,14 @@ from posttrain.cli import main
 from posttrain.tasks import summarize
 
 
+@pytest.fixture(autouse=True)
+def _keep_torch_threads():
+    """The runs here use run.threads=1 (light on shared CPUs); give later tests their thread count back."""
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
 def _pairs(n: int, seed: int, split: str) -> list[dict]:
     """chosen: the concise summary; rejected: the same plus a filler sentence (learnable from the text alone)."""
     rows = summarize.make_examples(n, seed, split)
@@ -39,7 +47,8 @@ def _args(world, out: Path, *extra: str, train: Path | None = None) -> list[str]
         sft.parent.mkdir(parents=True, exist_ok=True)
         shutil.copytree(world["sft"], sft)
     return ["rm", "--recipe", "tiny-summarize", f"run.output_dir={out}", f"train_file={train or world['train']}",
-            f"eval_file={world['eval']}", "batch_size=16", "warmup_steps=2", "log_every=5", "run.quiet=true", *extra]
+            f"eval_file={world['eval']}", "batch_size=16", "warmup_steps=2", "log_every=5", "run.quiet=true",
+            "run.threads=1", *extra]
 
 
 def test_reward_model_learns_and_reloads_as_a_hf_directory(world, tmp_path):

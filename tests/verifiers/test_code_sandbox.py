@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import subprocess
 import tempfile
 import textwrap
@@ -378,6 +379,15 @@ def test_works_for_a_non_root_caller():
     python = "/usr/bin/python3"
     if not os.access(python, os.X_OK):
         pytest.skip("no system python3")
+    # The child runs as uid 65534 and imports the package from this checkout: every directory
+    # above it must be searchable by others (a clone under /root or a 0700 temp dir is not).
+    d = os.path.join(REPO, "verifiers", "code_sandbox")
+    while True:
+        if not os.stat(d).st_mode & stat.S_IXOTH:
+            pytest.skip(f"{d} is not searchable by other users, so an unprivileged child cannot import the checkout")
+        if os.path.dirname(d) == d:
+            break
+        d = os.path.dirname(d)
     script = textwrap.dedent(f"""\
         import importlib, json, sys, types
         pkg = types.ModuleType('verifiers'); pkg.__path__ = [{os.path.join(REPO, 'verifiers')!r}]
