@@ -117,11 +117,16 @@ def load_reward_model(model_dir: str | Path, device: str | torch.device = "cpu")
     return model.to(device).eval(), tokenizer
 
 
+def rm_appends_eos(tokenizer) -> bool:
+    """Whether reward-model inputs end with eos: yes, unless the tokenizer pads with eos (see `reward_forward`)."""
+    return tokenizer.eos_token_id != tokenizer.pad_token_id
+
+
 def rm_token_ids(tokenizer, prompts: Sequence[str], completions: Sequence[str]) -> list[list[int]]:
-    """prompt (special tokens) + completion (+ eos unless the tokenizer pads with eos), as the RM trainer builds them."""
+    """prompt (special tokens) + completion (+ eos, `rm_appends_eos`), as the RM trainer builds them."""
     p = tokenizer(list(prompts), add_special_tokens=True)["input_ids"]
     c = tokenizer(list(completions), add_special_tokens=False)["input_ids"]
-    eos = [tokenizer.eos_token_id] if tokenizer.eos_token_id != tokenizer.pad_token_id else []
+    eos = [tokenizer.eos_token_id] if rm_appends_eos(tokenizer) else []
     return [a + b + eos for a, b in zip(p, c)]
 
 

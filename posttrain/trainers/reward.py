@@ -37,7 +37,7 @@ from posttrain import loop
 from posttrain.config import Resolved, save_resolved
 from posttrain.losses import bradley_terry_loss
 from posttrain.preferences import TokenizedPair
-from posttrain.scoring import left_pad, reward_forward
+from posttrain.scoring import left_pad, reward_forward, rm_appends_eos
 
 
 @dataclass
@@ -137,7 +137,7 @@ def train(res: Resolved, ensure) -> Path:
     sft_dir = ensure("sft")
     tokenizer = load_tokenizer(sft_dir)
     pad_id = tokenizer.pad_token_id
-    append_eos = tokenizer.eos_token_id != pad_id  # see posttrain.scoring.reward_forward
+    append_eos = rm_appends_eos(tokenizer)
     _, train_pairs, bad = preferences.check_pairs(train_rows, source, cfg.on_bad_rows, tokenizer,
                                                   res.model.max_length, append_eos=append_eos)
     if bad.count:

@@ -174,10 +174,10 @@ def test_huge_learning_rate_stops_and_never_checkpoints_broken_weights(world, tm
         assert all(torch.isfinite(v).all() for v in state["model"].values()), p
 
 
-def test_resume_continues_exactly(world, tmp_path):
+def _resume_matches_uninterrupted(world, tmp_path, *common: str) -> list[dict]:
+    """6 steps in one go == 3 steps, then resume=true to 6: same final weights. Returns the resumed run's metrics."""
     from safetensors.torch import load_file
 
-    common = ("schedule=constant", "lr=5e-4", "final_eval_rows=0")
     full, cut = tmp_path / "full", tmp_path / "cut"
     assert main(_args(world, full, "max_steps=6", *common)) == 0
     assert main(_args(world, cut, "max_steps=3", "save_every=3", *common)) == 0
@@ -186,8 +186,12 @@ def test_resume_continues_exactly(world, tmp_path):
     b = load_file(cut / "tiny-summarize" / "dpo" / "final" / "model.safetensors")
     for k in a:
         assert torch.allclose(a[k], b[k], atol=1e-5), k
-    steps = [r["step"] for r in _metrics(cut) if "loss" in r]
-    assert steps == [1, 2, 3, 4, 5, 6]
+    return _metrics(cut)
+
+
+def test_resume_continues_exactly(world, tmp_path):
+    m = _resume_matches_uninterrupted(world, tmp_path, "schedule=constant", "lr=5e-4", "final_eval_rows=0")
+    assert [r["step"] for r in m if "loss" in r] == [1, 2, 3, 4, 5, 6]
 
 
 def test_online_dpo_regenerates_pairs_from_the_policy(world, tmp_path, capsys):
@@ -202,18 +206,9 @@ def test_online_dpo_regenerates_pairs_from_the_policy(world, tmp_path, capsys):
 
 
 def test_online_resume_trains_on_the_saved_pairs(world, tmp_path):
-    from safetensors.torch import load_file
-
-    common = ("online=true", "online_every=2", "online_prompts=24", "online_samples=4", "batch_size=4",
-              "task.n_train=60", "schedule=constant", "lr=5e-4", "final_eval_rows=0")
-    full, cut = tmp_path / "full", tmp_path / "cut"
-    assert main(_args(world, full, "max_steps=6", *common)) == 0
-    assert main(_args(world, cut, "max_steps=3", "save_every=3", *common)) == 0
-    assert main(_args(world, cut, "max_steps=6", "resume=true", *common)) == 0
-    a = load_file(full / "tiny-summarize" / "dpo" / "final" / "model.safetensors")
-    b = load_file(cut / "tiny-summarize" / "dpo" / "final" / "model.safetensors")
-    for k in a:
-        assert torch.allclose(a[k], b[k], atol=1e-5), k
+    _resume_matches_uninterrupted(world, tmp_path, "online=true", "online_every=2", "online_prompts=24",
+                                  "online_samples=4", "batch_size=4", "task.n_train=60", "schedule=constant",
+                                  "lr=5e-4", "final_eval_rows=0")
 
 
 def test_gradient_accumulation_matches_one_big_batch(world, tmp_path):
