@@ -136,6 +136,44 @@ def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tens
     return logps, entropy
 
 
+def packed_logprobs(model, input_ids: torch.Tensor, position_ids: torch.Tensor, allowed: torch.Tensor,
+                    pred_index: torch.Tensor, targets: torch.Tensor, target_mask: torch.Tensor) -> torch.Tensor:
+    """Log-probs of `targets` for rows that pack several continuations of one prompt (prefix sharing).
+
+    input_ids, position_ids (B, T); allowed (B, T, T) bool, allowed[b, q, k]: query column q may attend
+    to key column k (a 4D mask: each continuation sees the prompt and itself, never a sibling);
+    pred_index (B, L): the column whose logits predict targets[:, j]; target_mask (B, L) 0/1.
+    Returns (B, L) log p(targets), 0 where target_mask is 0; differentiable under autograd.
+    The numbers equal `sequence_logprobs` on each (prompt + continuation) row alone (tested); the prompt
+    runs through the model once instead of once per continuation. Needs a model that takes a 4D
+    attention mask and explicit position_ids (HF Llama-family models do).
+    """
+    B, T = input_ids.shape
+    if position_ids.shape != (B, T) or allowed.shape != (B, T, T):
+        raise ValueError(f"packed_logprobs: position_ids {tuple(position_ids.shape)} must be (B, T) and allowed "
+                         f"{tuple(allowed.shape)} (B, T, T) for input_ids {tuple(input_ids.shape)}")
+    if pred_index.shape != targets.shape or targets.shape != target_mask.shape:
+        raise ValueError("packed_logprobs: pred_index, targets and target_mask must have the same (B, L) shape")
+    dev = model_device(model)
+    m = target_mask.to(dev).bool()
+    pred_index, targets = pred_index.to(dev), targets.to(dev)
+    if not bool(m.any()):
+        return torch.zeros(targets.shape, device=dev, dtype=torch.float32)
+    lo = int(pred_index[m].min())  # first column whose logits are needed
+    kw: dict[str, Any] = {}
+    if _accepts(model, "logits_to_keep") and lo > 0:
+        kw["logits_to_keep"] = T - lo
+    else:
+        lo = 0
+    logits = model(input_ids=input_ids.to(dev), attention_mask=allowed.to(dev)[:, None],
+                   position_ids=position_ids.to(dev), **kw).logits  # (B, T - lo, V)
+    logits = logits[:, -(T - lo):]
+    idx = (pred_index - lo).clamp(min=0).masked_fill(~m, 0)  # (B, L)
+    picked = logits.gather(1, idx[..., None].expand(-1, -1, logits.shape[-1]))  # (B, L, V)
+    logp, _ = token_logprobs(picked.float(), targets.masked_fill(~m, 0))  # (B, L)
+    return logp * m.to(logp.dtype)
+
+
 @torch.no_grad()
 def batched_logprobs(model, batch: Any, micro_batch_size: int = 16, *, temperature: float = 1.0,
                      return_entropy: bool = False):

@@ -41,8 +41,11 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def setup(seed: int, threads: int = 0, mixed_precision: str = "no"):
-    """Seed everything and return an `accelerate.Accelerator` (CPU unless launched on GPUs)."""
+def setup(seed: int, threads: int = 0, mixed_precision: str | None = None):
+    """Seed everything and return an `accelerate.Accelerator` (CPU unless launched on GPUs).
+
+    mixed_precision None: what `accelerate launch` was given (its config file or --mixed_precision), else "no".
+    """
     from accelerate import Accelerator
 
     from posttrain.rollout.engine import tune_malloc
@@ -50,9 +53,30 @@ def setup(seed: int, threads: int = 0, mixed_precision: str = "no"):
     tune_malloc()  # measured faster forwards on CPU (see its docstring); process-wide, once
     if threads > 0:
         torch.set_num_threads(threads)
-    accelerator = Accelerator(mixed_precision=mixed_precision)
+    # Without a GPU, ask for the CPU explicitly: then `accelerate launch --multi_gpu --num_processes N` or
+    # `torchrun --nproc_per_node N` (which set LOCAL_RANK / WORLD_SIZE) give N CPU processes over gloo
+    # (accelerate's MULTI_CPU) instead of N unconnected single-process runs.
+    accelerator = Accelerator(mixed_precision=mixed_precision, cpu=not _has_accelerator_device())
     seed_everything(seed)
     return accelerator
+
+
+def _has_accelerator_device() -> bool:
+    if torch.cuda.is_available():
+        return True
+    xpu = getattr(torch, "xpu", None)
+    if xpu is not None and xpu.is_available():
+        return True
+    mps = getattr(torch.backends, "mps", None)
+    return bool(mps is not None and mps.is_available())
+
+
+def global_sum(accelerator, value: float) -> float:
+    """`value` summed over all processes (itself when there is one), e.g. the tokens of a global batch."""
+    if accelerator is None or accelerator.num_processes == 1:
+        return float(value)
+    t = torch.tensor([float(value)], dtype=torch.float64, device=accelerator.device)
+    return float(accelerator.reduce(t, reduction="sum")[0])
 
 
 # ----------------------------------------------------------------------------- optimisation
@@ -124,7 +148,16 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
     optimizer.zero_grad(set_to_none=True)
     n = len(micro_batches)
     out = {k: (v if k.endswith("_sum") else v / n) for k, v in totals.items()}
-    out.update(loss=loss_total, grad_norm=grad_norm, lr=scheduler.get_last_lr()[0])
+    out["loss"] = loss_total
+    if accelerator.num_processes > 1:
+        # The logged numbers describe the global batch: losses and means averaged over processes (each
+        # process's loss is its share scaled up, see loss_fn), `_sum` metrics summed.
+        keys = sorted(out)
+        t = torch.tensor([out[k] for k in keys], dtype=torch.float64, device=accelerator.device)
+        mean = accelerator.reduce(t.clone(), reduction="mean")
+        total = accelerator.reduce(t, reduction="sum")
+        out = {k: float(total[i] if k.endswith("_sum") else mean[i]) for i, k in enumerate(keys)}
+    out.update(grad_norm=grad_norm, lr=scheduler.get_last_lr()[0])
     return out
 
 
@@ -238,11 +271,12 @@ class Checkpointer:
         if self.accelerator is not None:
             self.accelerator.wait_for_everyone()
         final = self.dir / f"step-{step:06d}"
+        # On every process: under FSDP / DeepSpeed ZeRO-3 this gathers the full weights (to the main one).
+        model_state = self.accelerator.get_state_dict(model) if self.accelerator is not None else model.state_dict()
         if self.is_main:
-            unwrapped = self.accelerator.unwrap_model(model) if self.accelerator is not None else model
             state = {
                 "step": step,
-                "model": {k: v.detach().cpu() for k, v in unwrapped.state_dict().items()},
+                "model": {k: v.detach().cpu() for k, v in model_state.items()},
                 "optimizer": optimizer.state_dict() if optimizer is not None else None,
                 "scheduler": scheduler.state_dict() if scheduler is not None else None,
                 "rng": _rng_state(),

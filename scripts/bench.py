@@ -5,6 +5,10 @@ Sections (`--only NAME`, repeatable; later issues add trainer sections to SECTIO
             random-init preset, prompts (16-48 tokens, mixed), settings (sampling at temperature 1, no
             top-k / top-p) and seed; both produce exactly max_new_tokens per row (`min_new_tokens` for
             generate, `ignore_eos=True` for the engine). Warm-up excluded, runs alternate, medians.
+  dpo       our DPO training loop (trainers/dpo.py's pair_logps / pair_loss / reference_logps with
+            loop.optimizer_step) against TRL's DPOTrainer (optional: `pip install -e '.[bench]'`) on
+            the same tiny model, tiny-summarize pairs, batch (8), lr and beta, TRL set up for this CPU
+            (fp32, no gradient checkpointing); tokens/s of the same pairs, reference log-probs included.
 
 CPU:       python scripts/bench.py --quick            (< 2 min on 2 cores)
            python scripts/bench.py --only generate --threads 2 --json runs/bench.json
@@ -21,6 +25,8 @@ machine's fp32 matmul rate, measured first with a large torch.matmul on the same
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import os
 import platform
@@ -157,8 +163,141 @@ def bench_generate(args) -> dict:
     return dict(matmul_gflops=peak, rows=rows_out)
 
 
+# ------------------------------------------------------------------ section: dpo
+
+
+def _summarize_pairs(n: int, seed: int = 0) -> list[dict]:
+    """n preference rows from the tiny-summarize generator: chosen = the reference summary, rejected =
+    another document's summary (realistic lengths; the labels do not matter for throughput)."""
+    from posttrain.tasks import get_task
+
+    ex = get_task("tiny-summarize").make_examples(n + 1, seed, "train")
+    return [{"prompt": ex[i]["prompt"], "chosen": ex[i]["completion"], "rejected": ex[i + 1]["completion"],
+             "_row": i + 1} for i in range(n)]
+
+
+def bench_dpo(args) -> dict:
+    """Our DPO training loop against TRL's DPOTrainer on the same tiny model, pairs, batch and lr.
+
+    Both train one pass over the same S*B pairs (S steps of B pairs), so they process exactly the same
+    tokens; tokens/s = (prompt+chosen + prompt+rejected tokens of those pairs) / wall time. Ours is timed
+    from the reference precompute (the SFT model's log-probs of every pair, done once) to the last
+    optimizer step; TRL's from `trainer.train()` to its return (its reference model runs every step,
+    its default); with precompute_ref_log_probs=True (second row) TRL computes them in its constructor, so
+    a second, identical precompute pass is timed alone and added to its train() time. TRL is configured for this CPU: fp32 (bf16=False), gradient_checkpointing=False,
+    no logging / saving / eval. Each side runs once untimed first (warm-up); runs alternate; medians.
+    """
+    import copy
+    import tempfile
+
+    from posttrain import loop
+    from posttrain.preferences import check_pairs, collate_pairs
+    from posttrain.tasks import tokenizer_corpus
+    from posttrain.config import TaskConfig
+    from posttrain.trainers.dpo import DPOConfig, pair_logps, pair_loss, reference_logps
+
+    B = args.dpo_batch
+    S = 6 if args.quick else 16
+    repeats = 3 if args.quick else 5
+    max_len = 256
+    tok = train_tokenizer(tokenizer_corpus(TaskConfig(name="tiny-summarize", n_train=2000)), vocab_size=1024)
+    rows = _summarize_pairs(S * B)
+    _, pairs, _ = check_pairs(rows, "bench pairs", "error", tok, max_len)
+    tokens = sum(2 * len(p.prompt) + len(p.chosen) + len(p.rejected) for p in pairs)
+    base = build_model("tiny", tok, seed=0).to(args.device)
+    print(f"tiny: {count_parameters(base) / 1e6:.2f}M parameters; {S} steps x {B} pairs, "
+          f"{tokens / len(pairs):.0f} tokens per pair (prompt twice + chosen + rejected), lr 1e-4, beta 0.1")
+    cfg = DPOConfig(batch_size=B, lr=1e-4, beta=0.1)
+    pad = tok.pad_token_id
+
+    def ours() -> float:
+        model = copy.deepcopy(base)
+        accelerator = loop.setup(0)
+        t0 = time.perf_counter()
+        ref = reference_logps(model, pairs, pad, B)
+        optimizer = loop.build_optimizer(model, cfg.lr)
+        scheduler = loop.build_scheduler(optimizer, 0, S, "constant")
+        for step in range(S):
+            idx = list(range(step * B, (step + 1) * B))
+            batch = collate_pairs([pairs[i] for i in idx], pad, share_prompt=True)
+            r = {k: v[idx] for k, v in ref.items()}
+
+            def loss_fn(mb):
+                s, n = pair_logps(model, mb)
+                return pair_loss(cfg, s, n, r)
+
+            loop.optimizer_step(accelerator, model, optimizer, scheduler, [batch], loss_fn, 1.0, step + 1)
+        _sync(args.device)
+        return time.perf_counter() - t0
+
+    try:
+        import trl  # noqa: F401
+        from datasets import Dataset
+        from transformers import logging as hf_logging
+        from trl import DPOConfig as TRLConfig, DPOTrainer
+    except ImportError as e:
+        print(f"TRL not installed ({e}); `pip install -e '.[bench]'` to compare. Ours alone:")
+        t = statistics.median(ours() for _ in range(repeats + 1))
+        print(f"ours: {tokens / t:.0f} tokens/s")
+        return dict(ours_tok_s=tokens / t)
+    hf_logging.set_verbosity_error()
+    import datasets
+    from transformers.trainer_callback import PrinterCallback
+
+    datasets.disable_progress_bars()
+    data = [{k: r[k] for k in ("prompt", "chosen", "rejected")} for r in rows]
+    tmp = tempfile.mkdtemp(prefix="posttrain-bench-trl-")
+
+    def trl_run(precompute: bool = False) -> float:
+        targs = TRLConfig(precompute_ref_log_probs=precompute, precompute_ref_batch_size=B, output_dir=tmp, per_device_train_batch_size=B, num_train_epochs=1, learning_rate=1e-4,
+                          lr_scheduler_type="constant", beta=0.1, max_length=max_len, bf16=False, fp16=False,
+                          gradient_checkpointing=False, use_cpu=args.device == "cpu", logging_strategy="no",
+                          save_strategy="no", eval_strategy="no", report_to=[], disable_tqdm=True,
+                          dataloader_num_workers=0, seed=0)
+        ref = None if precompute else copy.deepcopy(base).eval()
+        train_data = Dataset.from_list(data)
+        train_data._fingerprint = f"posttrain-bench-{time.time_ns()}"  # no reuse of TRL's cached reference log-probs
+        model = copy.deepcopy(base)
+        with contextlib.redirect_stderr(io.StringIO()):  # TRL's own progress bars
+            trainer = DPOTrainer(model=model, ref_model=ref, args=targs, train_dataset=train_data,
+                                 processing_class=tok)
+            trainer.remove_callback(PrinterCallback)
+            t_pre = 0.0
+            if precompute:  # TRL ran it in the constructor (with dataset bookkeeping): time one more pass alone
+                ds = trainer.train_dataset.remove_columns(["ref_chosen_logps", "ref_rejected_logps"])
+                ds._fingerprint = f"posttrain-bench-{time.time_ns()}"
+                t0 = time.perf_counter()
+                trainer._precompute_ref_logps(ds, "train", B)
+                t_pre = time.perf_counter() - t0
+            t0 = time.perf_counter() - t_pre
+            out = trainer.train()
+        _sync(args.device)
+        dt = time.perf_counter() - t0
+        assert out.global_step == S, f"TRL ran {out.global_step} steps, expected {S}"
+        return dt
+
+    ours(), trl_run(), trl_run(True)  # warm-up
+    t_ours, t_trl, t_trl_pre = [], [], []
+    for _ in range(repeats):
+        t_trl.append(trl_run())
+        t_ours.append(ours())
+        t_trl_pre.append(trl_run(True))
+    mo, mt, mp = statistics.median(t_ours), statistics.median(t_trl), statistics.median(t_trl_pre)
+    row = dict(batch=B, steps=S, tokens=tokens, ours_tok_s=tokens / mo, trl_tok_s=tokens / mt,
+               trl_precompute_tok_s=tokens / mp, ratio=mt / mo, ratio_vs_trl_precompute=mp / mo,
+               ours_times=t_ours, trl_times=t_trl, trl_precompute_times=t_trl_pre)
+    print(f"{'implementation':<44} {'tokens/s':>9} {'s/step':>7} {'ratio':>7}")
+    print(f"{'TRL DPOTrainer, live reference (its default)':<44} {tokens / mt:>9.0f} {mt / S:>7.3f} "
+          f"{mt / mo:>6.2f}x")
+    print(f"{'TRL DPOTrainer, precompute_ref_log_probs':<44} {tokens / mp:>9.0f} {mp / S:>7.3f} {mp / mo:>6.2f}x")
+    print(f"{'posttrain DPO loop (reference precomputed)':<44} {tokens / mo:>9.0f} {mo / S:>7.3f} {'1.00x':>7}")
+    print("ratio = TRL time / posttrain time for the same pairs (both include their reference log-probs).")
+    return row
+
+
 SECTIONS = {
     "generate": bench_generate,
+    "dpo": bench_dpo,
 }
 
 
@@ -172,6 +311,7 @@ def main(argv=None) -> int:
     ap.add_argument("--batches", default="1,16,64", help="comma-separated batch sizes")
     ap.add_argument("--max-new-tokens", type=int, default=64)
     ap.add_argument("--repeats", type=int, default=None, help="timed runs per implementation (default 5 quick, 9)")
+    ap.add_argument("--dpo-batch", type=int, default=8, help="pairs per step in the dpo section (default 8)")
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = ap.parse_args(argv)
     args.presets = [p for p in args.presets.split(",") if p]

@@ -15,9 +15,14 @@ Details, and where they come from:
   hinge). Log-probs are sums over completion tokens, eos included; for IPO they are length-
   averaged (sum / tokens) for policy and reference alike, as TRL does (Azar et al. 2023 define
   IPO on sequence log-likelihoods; the average keeps its 1/(2 beta) target per token).
-- One forward for both sides: chosen rows then rejected rows of a micro-batch are concatenated
-  along the batch (TRL's `concatenated_forward`); padding never changes a row's numbers
-  (`posttrain.logprobs` positions count real tokens only).
+- One forward for both sides, and the prompt computed once (`share_prompt`, default): each pair is
+  ONE row, prompt + chosen + rejected, with a 4D attention mask under which the rejected tokens see
+  the prompt and themselves but not the chosen tokens, and positions that restart after the prompt
+  (`preferences.collate_shared_prompt`, `logprobs.packed_logprobs`). Each side's log-probs equal
+  those of its own prompt + completion row (tested to fp32 rounding); the prompt's tokens go through
+  the model once instead of twice (prefix sharing). share_prompt=false concatenates chosen rows then
+  rejected rows along the batch instead (TRL's `concatenated_forward`), for models that take no 4D
+  mask. Padding never changes a row's numbers (`posttrain.logprobs` positions count real tokens only).
 - Reference (`reference`): "precomputed" (default) runs the SFT model over every training pair
   the run will draw (in online mode: those of the first online_every steps) and every held-out
   pair before the first update and keeps only the (N,) log-prob sums, so no reference model sits
@@ -64,7 +69,7 @@ import torch
 
 from posttrain import loop
 from posttrain.config import ConfigError, Resolved, save_resolved
-from posttrain.logprobs import masked_sum, sequence_logprobs
+from posttrain.logprobs import masked_sum, packed_logprobs, sequence_logprobs
 from posttrain.losses import dpo_loss
 from posttrain.preferences import TokenizedPair, collate_pairs
 
@@ -83,6 +88,8 @@ class DPOConfig:
     """Conservative DPO: assumed probability that a label is flipped (sigmoid only, <= 0.5)."""
     chosen_nll_weight: float = 0.0
     """RPO (Pang et al. 2024): add this weight times the per-token NLL of the chosen completions (TRL's rpo_alpha)."""
+    share_prompt: bool = True
+    """Prefix sharing: one row per pair (prompt, chosen, rejected; rejected masked off chosen), prompt computed once."""
     reference: Literal["precomputed", "live"] = "precomputed"
     """precomputed: reference log-probs once before training, no reference model in memory; live: a frozen copy."""
     lr: float = 1e-4
@@ -145,23 +152,32 @@ class DPOConfig:
 
 # ----------------------------------------------------------------------------- log-probs of pairs
 def pair_logps(model, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Summed completion log-probs (2B,) and completion token counts (2B,) of a `collate_pairs` batch.
+    """Summed completion log-probs (2B,) and completion token counts (2B,) of a `collate_pairs` batch,
+    chosen first then rejected, in either layout (two rows per pair, or one shared-prompt row per pair).
 
-    ONE forward over chosen and rejected rows together; differentiable under autograd.
+    ONE forward over chosen and rejected together; differentiable under autograd.
     """
+    if "allowed" in batch:  # shared prompt: one row per pair, prompt + chosen + rejected
+        lp = packed_logprobs(model, batch["input_ids"], batch["position_ids"], batch["allowed"],
+                             batch["pred_index"], batch["targets"], batch["target_mask"])  # (B, Lc + Lr)
+        Lc = int(batch["chosen_cols"])
+        cm = batch["target_mask"].to(lp.device, lp.dtype)
+        return (torch.cat([lp[:, :Lc].sum(-1), lp[:, Lc:].sum(-1)]),
+                torch.cat([cm[:, :Lc].sum(-1), cm[:, Lc:].sum(-1)]))  # (2B,), (2B,)
     logps, _ = sequence_logprobs(model, batch["input_ids"], batch["attention_mask"], batch["completion_mask"])  # (2B, T)
     cm = batch["completion_mask"].to(logps.device)
     return masked_sum(logps, cm, -1), cm.sum(-1).to(logps.dtype)  # (2B,), (2B,)
 
 
 @torch.no_grad()
-def reference_logps(model, pairs: list[TokenizedPair], pad_id: int, micro_batch_size: int) -> dict[str, torch.Tensor]:
+def reference_logps(model, pairs: list[TokenizedPair], pad_id: int, micro_batch_size: int,
+                    share_prompt: bool = True) -> dict[str, torch.Tensor]:
     """{"chosen", "rejected", "chosen_tokens", "rejected_tokens"}: (N,) tensors on CPU, one entry per pair."""
     was_training = model.training
     model.eval()
     out: dict[str, list[torch.Tensor]] = {"chosen": [], "rejected": [], "chosen_tokens": [], "rejected_tokens": []}
     for chunk in loop.chunks(pairs, micro_batch_size):
-        s, n = pair_logps(model, collate_pairs(chunk, pad_id))
+        s, n = pair_logps(model, collate_pairs(chunk, pad_id, share_prompt))
         b = len(chunk)
         out["chosen"].append(s[:b].cpu())
         out["rejected"].append(s[b:].cpu())
@@ -206,7 +222,7 @@ def heldout_pair_metrics(cfg: DPOConfig, model, pairs: list[TokenizedPair], ref:
     sums: dict[str, float] = {}
     for start in range(0, len(pairs), micro):
         chunk = pairs[start:start + micro]
-        batch = collate_pairs(chunk, pad_id)
+        batch = collate_pairs(chunk, pad_id, cfg.share_prompt)
         s, n = pair_logps(model, batch)
         r = _select(ref, list(range(start, start + len(chunk)))) if ref is not None else \
             _ref_from_model(ref_model, batch, len(chunk))
@@ -314,10 +330,10 @@ def train(res: Resolved, ensure) -> Path:
         offline_steps = min(cfg.max_steps, cfg.online_every) if cfg.online else cfg.max_steps
         used = sorted({i for s in range(offline_steps) for i in loop.batch_indices(len(train_pairs), cfg.batch_size,
                                                                                      cfg.seed, s)})
-        ref_used = reference_logps(model, [train_pairs[i] for i in used], pad_id, micro)
+        ref_used = reference_logps(model, [train_pairs[i] for i in used], pad_id, micro, cfg.share_prompt)
         ref_train = {k: torch.full((len(train_pairs),), float("nan")).index_copy(0, torch.tensor(used), v)
                      for k, v in ref_used.items()}
-        ref_eval = reference_logps(model, eval_pairs, pad_id, micro)
+        ref_eval = reference_logps(model, eval_pairs, pad_id, micro, cfg.share_prompt)
         say(f"[dpo] reference log-probs of {len(used)} training and {len(eval_pairs)} held-out pairs "
             f"precomputed in {time.time() - t0:.1f}s; no reference model is kept in memory")
     else:
@@ -377,7 +393,7 @@ def train(res: Resolved, ensure) -> Path:
         ref = None
         if cfg.reference == "precomputed":
             reference = reference_for_eval()
-            ref = reference_logps(reference, new_pairs, pad_id, micro)
+            ref = reference_logps(reference, new_pairs, pad_id, micro, cfg.share_prompt)
             del reference
         metrics.log(step, {"online/pairs": len(new_pairs), "online/prompts_all_tied": st["prompts_all_tied"]},
                     console=False)
@@ -422,7 +438,7 @@ def train(res: Resolved, ensure) -> Path:
         idx = loop.batch_indices(len(pool["pairs"]), cfg.batch_size, cfg.seed + pool["gen"], step - pool["start"],
                                  accelerator.process_index, accelerator.num_processes)[:per_process]
         micro_idx = loop.chunks(idx, micro)
-        micro_batches = [(collate_pairs([pool["pairs"][i] for i in mi], pad_id),
+        micro_batches = [(collate_pairs([pool["pairs"][i] for i in mi], pad_id, cfg.share_prompt),
                           _select(pool["ref"], mi) if pool["ref"] is not None else None, len(mi)) for mi in micro_idx]
 
         def loss_fn(mb):

@@ -197,10 +197,13 @@ def train(res: Resolved, ensure) -> Path:
         batch_pairs = [train_pairs[i] for i in idx]
         micro_batches = [collate(c, tokenizer.pad_token_id) for c in loop.chunks(batch_pairs, micro)]
         n_tokens = sum(float(token_weights(mb, cfg.prompt_loss_weight).sum()) for mb in micro_batches)
+        # Token mean over the GLOBAL batch: DDP averages gradients over processes, so each process
+        # divides its token-loss sum by the global token count times the number of processes.
+        scale = accelerator.num_processes / loop.global_sum(accelerator, n_tokens)
 
         def loss_fn(mb):
             s, _ = sft_loss_sum(model, mb, cfg.prompt_loss_weight)
-            return s / n_tokens, {}
+            return s * scale, {}
 
         m = loop.optimizer_step(accelerator, model, optimizer, scheduler, micro_batches, loss_fn,
                                 cfg.max_grad_norm, step)

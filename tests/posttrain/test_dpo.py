@@ -59,6 +59,7 @@ def _metrics(out: Path) -> list[dict]:
 
 
 def test_one_forward_over_chosen_and_rejected_equals_two(world):
+    """Both layouts (two rows per pair; one shared-prompt row per pair) give each side's own log-probs."""
     from posttrain.logprobs import masked_sum, sequence_logprobs
     from posttrain.models import load_model, load_tokenizer
     from posttrain.preferences import check_pairs, collate_pairs, read_pairs
@@ -67,6 +68,8 @@ def test_one_forward_over_chosen_and_rejected_equals_two(world):
     model, tok = load_model(world["sft"]), load_tokenizer(world["sft"])
     _, pairs, _ = check_pairs(read_pairs(world["train"])[:6], "t", "error", tok, 256)
     together, n = pair_logps(model, collate_pairs(pairs, tok.pad_token_id))  # (12,)
+    shared, n_shared = pair_logps(model, collate_pairs(pairs, tok.pad_token_id, share_prompt=True))  # (12,)
+    assert torch.allclose(shared, together, atol=1e-4) and torch.equal(n_shared, n)
     for side, sl in (("chosen", slice(0, 6)), ("rejected", slice(6, 12))):
         # each side alone, left-padded this time (different padding, same numbers)
         seqs = [p.prompt + getattr(p, side) for p in pairs]
