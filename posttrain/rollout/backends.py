@@ -37,6 +37,7 @@ Not thread-safe: one `generate` at a time per model.
 """
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
@@ -202,6 +203,12 @@ class LeanLlama:
         self.cis = self._cis
         self.rows, self.cols = rows, cols
         self._bound = -1
+
+    def session(self) -> "LeanLlama":
+        """A second decoder over the same fused weights with a KV cache of its own (one per worker thread)."""
+        other = copy.copy(self)
+        other.release()
+        return other
 
     def release(self) -> None:
         """Drop the KV cache (the fused weights stay for the next call)."""
