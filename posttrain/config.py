@@ -52,6 +52,8 @@ class ModelConfig:
     """Longest prompt + completion in tokens; longer rows are dropped with a count."""
     seed: int = 0
     """Seed of the random init of a preset."""
+    split_digits: bool = False
+    """Tokenizer built from scratch: every digit its own token (arithmetic tasks such as tiny-math)."""
 
 
 @dataclass
@@ -64,7 +66,24 @@ class RunConfig:
     """No progress bar; metrics still go to metrics.jsonl."""
 
 
-SHARED_SECTIONS: dict[str, type] = {"task": TaskConfig, "model": ModelConfig, "run": RunConfig}
+@dataclass
+class LoRAConfig:
+    enabled: bool = False
+    """Train LoRA adapters (peft) instead of every weight; the reference is the base with adapters off."""
+    stages: list[str] = field(default_factory=list)
+    """Stages that use LoRA when enabled; empty: only the stage being run (stages it builds first train fully)."""
+    r: int = 16
+    """Adapter rank."""
+    alpha: float = 32.0
+    """Scaling numerator: the update is (alpha / r) * B @ A."""
+    dropout: float = 0.0
+    """Dropout on the adapter input during training."""
+    target_modules: list[str] = field(default_factory=lambda: ["q_proj", "k_proj", "v_proj", "o_proj", "gate_proj",
+                                                                "up_proj", "down_proj"])
+    """Module names that get adapters (Llama-family names by default; "all-linear" is peft's shorthand)."""
+
+
+SHARED_SECTIONS: dict[str, type] = {"task": TaskConfig, "model": ModelConfig, "run": RunConfig, "lora": LoRAConfig}
 STAGE_SECTIONS = ("sft", "prefs", "rm", "dpo", "ppo", "grpo", "eval")
 
 
@@ -261,6 +280,12 @@ class Resolved:
     run: RunConfig
     stage_cfg: Any
     raw_recipe: dict[str, Any] = field(default_factory=dict)
+    lora: LoRAConfig = field(default_factory=LoRAConfig)
+
+    @property
+    def use_lora(self) -> bool:
+        """Whether this stage trains LoRA adapters (see LoRAConfig.stages)."""
+        return self.lora.enabled and (self.stage in self.lora.stages or not self.lora.stages)
 
     @property
     def run_root(self) -> Path:
@@ -271,14 +296,15 @@ class Resolved:
 
     def to_dict(self) -> dict[str, Any]:
         return {"recipe": self.recipe, "stage": self.stage, "task": to_dict(self.task), "model": to_dict(self.model),
-                "run": to_dict(self.run), self.stage: to_dict(self.stage_cfg)}
+                "run": to_dict(self.run), "lora": to_dict(self.lora), self.stage: to_dict(self.stage_cfg)}
 
     def for_stage(self, stage: str, stage_cls: type) -> "Resolved":
         """The config of another stage of the same recipe (used to build a prerequisite stage)."""
         cfg = stage_cls()
         if stage in self.raw_recipe and self.raw_recipe[stage] is not None:
             merge_into(cfg, self.raw_recipe[stage], stage)
-        return Resolved(self.recipe, stage, self.task, self.model, self.run, cfg, self.raw_recipe)
+        lora = self.lora if self.lora.enabled and stage in self.lora.stages else LoRAConfig()
+        return Resolved(self.recipe, stage, self.task, self.model, self.run, cfg, self.raw_recipe, lora)
 
 
 def resolve(recipe: str, stage: str, stage_cls: type, overrides: list[str] | None = None) -> Resolved:
@@ -314,8 +340,15 @@ def resolve(recipe: str, stage: str, stage_cls: type, overrides: list[str] | Non
         else:
             valid = ", ".join(sorted(stage_fields))
             raise ConfigError(f"unknown config key {key!r} for stage {stage!r}; valid keys: {valid} "
-                              f"(or dotted: task.*, model.*, run.*, {stage}.*)")
-    return Resolved(name, stage, shared["task"], shared["model"], shared["run"], stage_cfg, raw)
+                              f"(or dotted: task.*, model.*, run.*, lora.*, {stage}.*)")
+    res = Resolved(name, stage, shared["task"], shared["model"], shared["run"], stage_cfg, raw, shared["lora"])
+    unknown = sorted(set(res.lora.stages) - set(STAGE_SECTIONS))
+    if unknown:
+        raise ConfigError(f"config key 'lora.stages': unknown stage(s) {unknown}; stages: {', '.join(STAGE_SECTIONS)}")
+    if res.lora.enabled and (res.lora.r < 1 or res.lora.alpha <= 0 or not 0 <= res.lora.dropout < 1):
+        raise ConfigError(f"config keys lora.r / lora.alpha / lora.dropout: need r >= 1, alpha > 0, 0 <= dropout < 1 "
+                          f"(got {res.lora.r}, {res.lora.alpha}, {res.lora.dropout})")
+    return res
 
 
 def _deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:

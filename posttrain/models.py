@@ -38,18 +38,26 @@ class ModelError(ValueError):
     """A model or tokenizer the user pointed at cannot be used (missing path, not a model dir)."""
 
 
-def train_tokenizer(texts: Iterable[str], vocab_size: int = 1024, model_max_length: int = 512):
+def train_tokenizer(texts: Iterable[str], vocab_size: int = 1024, model_max_length: int = 512,
+                    split_digits: bool = False):
     """Train a byte-level BPE tokenizer on `texts` and wrap it as a PreTrainedTokenizerFast.
 
     Byte-level means any input string round-trips (no unknown token). Special tokens:
     pad (id 0), eos (id 1), bos (id 2). No BOS is added automatically: prompts are plain text
     and completions end with eos, which the trainers append.
+
+    `split_digits`: every digit is its own token (a `Digits(individual_digits=True)` pre-tokenizer
+    before the byte-level one, as Llama and DeepSeek tokenizers do), so BPE never merges "47" or
+    " 85" into one token. Arithmetic tasks need it: a tiny model learns digit-by-digit column
+    arithmetic from single-digit tokens, not from ~1000 opaque number tokens.
     """
     from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
     from transformers import PreTrainedTokenizerFast
 
     tok = Tokenizer(models.BPE())
-    tok.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
+    byte_level = pre_tokenizers.ByteLevel(add_prefix_space=False)
+    tok.pre_tokenizer = pre_tokenizers.Sequence([pre_tokenizers.Digits(individual_digits=True), byte_level]) \
+        if split_digits else byte_level
     tok.decoder = decoders.ByteLevel()
     trainer = trainers.BpeTrainer(
         vocab_size=vocab_size,
@@ -127,8 +135,70 @@ def load_model(path: str | os.PathLike, dtype: torch.dtype | None = None, device
     return model.to(device)
 
 
+def maybe_lora(res, model, say=print, task_type: str = "CAUSAL_LM"):
+    """`apply_lora` when the resolved config asks for LoRA in this stage (`res.use_lora`), else `model`."""
+    if not res.use_lora:
+        return model
+    model = apply_lora(model, res.lora, task_type)
+    trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
+    say(f"[{res.stage}] LoRA r={res.lora.r} alpha={res.lora.alpha} on {', '.join(res.lora.target_modules)}: "
+        f"{trainable / 1e3:.1f}k trainable of {count_parameters(model) / 1e6:.2f}M parameters")
+    return model
+
+
+def apply_lora(model, lora_cfg, task_type: str = "CAUSAL_LM"):
+    """Wrap `model` with trainable LoRA adapters (peft); every base weight is frozen.
+
+    The adapters start at zero (B = 0), so the wrapped model computes exactly the base model until the
+    first update; with the adapters disabled (`reference_view`) it is the base model, the reference of
+    DPO / PPO / GRPO, and no second copy of the weights is needed."""
+    from peft import LoraConfig, get_peft_model
+
+    target = lora_cfg.target_modules
+    config = LoraConfig(r=lora_cfg.r, lora_alpha=lora_cfg.alpha, lora_dropout=lora_cfg.dropout,
+                        target_modules=target[0] if target == ["all-linear"] else list(target),
+                        task_type=task_type, bias="none")
+    try:
+        return get_peft_model(model, config)
+    except ValueError as e:  # e.g. a target module name the model does not have
+        raise ModelError(f"lora.target_modules {list(target)}: {e}") from None
+
+
+def is_lora(model) -> bool:
+    return hasattr(model, "peft_config") and hasattr(model, "disable_adapter")
+
+
+class reference_view(torch.nn.Module):
+    """The base model inside a LoRA-wrapped model: calls run with the adapters disabled.
+
+    A drop-in reference for `posttrain.logprobs` (it only calls the model and reads its parameters'
+    device). Shares every weight with the policy: no copy."""
+
+    def __init__(self, peft_model):
+        super().__init__()
+        self.inner = peft_model
+
+    def forward(self, *args, **kwargs):
+        with self.inner.disable_adapter():
+            return self.inner(*args, **kwargs)
+
+    @property
+    def config(self):
+        return self.inner.config
+
+    def get_base_model(self):  # lets posttrain.logprobs inspect the real forward's arguments
+        return self.inner.get_base_model()
+
+
 def save_model(model, tokenizer, out_dir: str | os.PathLike) -> Path:
-    """Save model + tokenizer as a Hugging Face directory, atomically (write to a temp dir, then rename)."""
+    """Save model + tokenizer as a Hugging Face directory, atomically (write to a temp dir, then rename).
+
+    A LoRA-wrapped model is saved merged (base + adapters) as a plain Hugging Face model; the model
+    passed in keeps its adapters (the merge is made on a copy of the weights)."""
+    if is_lora(model):
+        import copy
+
+        model = copy.deepcopy(model).merge_and_unload()
     out = Path(out_dir)
     tmp = out.with_name(out.name + ".tmp")
     if tmp.exists():
@@ -157,9 +227,10 @@ def count_parameters(model) -> int:
 
 
 def bootstrap(preset: str, corpus: Iterable[str], out_dir: str | os.PathLike, *, vocab_size: int = 1024,
-              seed: int = 0, max_length: int = 512):
+              seed: int = 0, max_length: int = 512, split_digits: bool = False):
     """Build a tokenizer on `corpus` and a random `preset` model; save both to `out_dir`; return (model, tokenizer)."""
-    tokenizer = train_tokenizer(corpus, vocab_size=vocab_size, model_max_length=max_length)
+    tokenizer = train_tokenizer(corpus, vocab_size=vocab_size, model_max_length=max_length,
+                                split_digits=split_digits)
     model = build_model(preset, tokenizer, seed=seed)
     save_model(model, tokenizer, out_dir)
     return model, tokenizer

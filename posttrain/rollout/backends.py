@@ -49,21 +49,63 @@ from ..logprobs import _accepts, model_device
 LEAN_MODEL_TYPES = ("llama", "mistral", "qwen2")
 
 
+def _plain_or_lora(m) -> str | None:
+    """None when `m` is a plain nn.Linear or a peft LoRA Linear over one (plain LoRA, no variant such as
+    DoRA); else why not."""
+    if type(m) is nn.Linear:
+        return None
+    base = getattr(m, "base_layer", None)
+    if type(base) is not nn.Linear or not hasattr(m, "lora_A") or not hasattr(m, "get_delta_weight"):
+        return f"{type(m).__name__} is neither nn.Linear nor a LoRA Linear"
+    if getattr(m, "fan_in_fan_out", False):
+        return "LoRA with fan_in_fan_out"
+    if any(getattr(m, "lora_variant", {}).get(a) is not None for a in m.active_adapters):
+        return "a LoRA variant (DoRA, ...) is active"
+    return None
+
+
+def _weight(m) -> torch.Tensor:
+    """The effective (out, in) weight: the base weight plus each active, enabled, unmerged LoRA delta."""
+    if type(m) is nn.Linear:
+        return m.weight.detach()
+    w = m.base_layer.weight.detach()
+    if not m.disable_adapters and not m.merged:
+        for a in m.active_adapters:
+            if a in m.lora_A:
+                w = w + m.get_delta_weight(a).detach().to(w.dtype)
+    return w
+
+
+def _linear_bias(m) -> torch.Tensor | None:
+    lin = m if type(m) is nn.Linear else m.base_layer
+    return None if lin.bias is None else lin.bias.detach()
+
+
 def lean_support(model, max_len: int) -> tuple[bool, str]:
-    """Whether the lean path can run `model` for sequences up to `max_len` tokens, and why (not)."""
+    """Whether the lean path can run `model` for sequences up to `max_len` tokens, and why (not).
+
+    A peft LoRA model is supported (plain LoRA on Linear layers): the lean path fuses base + adapter
+    deltas into its weights (rebuilt whenever a parameter changes), and honours disabled adapters."""
+    lora = hasattr(model, "peft_config") and hasattr(model, "get_base_model")
+    if hasattr(model, "peft_config") and not lora:
+        return False, "peft-wrapped model of unknown shape"
+    if lora:
+        types_ = {getattr(c, "peft_type", None) for c in model.peft_config.values()}
+        if {str(t).split(".")[-1] for t in types_} != {"LORA"}:
+            return False, f"peft adapters of type(s) {sorted(map(str, types_))} (the lean path fuses LoRA only)"
+        model = model.get_base_model()
     cfg = getattr(model, "config", None)
     if cfg is None:
         return False, "model has no config"
-    if hasattr(model, "peft_config"):
-        return False, "peft-wrapped model (adapters are applied by the HF forward)"
     mt = getattr(cfg, "model_type", None)
     if mt not in LEAN_MODEL_TYPES:
         return False, f"model_type {mt!r} is not one of {LEAN_MODEL_TYPES}"
     base = getattr(model, "model", None)
-    if base is None or type(getattr(model, "lm_head", None)) is not nn.Linear:
+    head = getattr(model, "lm_head", None)
+    if base is None or head is None or _plain_or_lora(head) is not None:
         return False, "no plain lm_head / .model"
-    if model.lm_head.weight.dtype != torch.float32:
-        return False, f"dtype {model.lm_head.weight.dtype} (the lean path is fp32)"
+    if _weight(head).dtype != torch.float32:
+        return False, f"dtype {_weight(head).dtype} (the lean path is fp32)"
     if getattr(cfg, "hidden_act", None) != "silu":
         return False, f"hidden_act {getattr(cfg, 'hidden_act', None)!r} (lean path implements silu)"
     for attr in ("final_logit_softcapping", "attn_logit_softcapping", "logit_scale"):
@@ -88,14 +130,15 @@ def lean_support(model, max_len: int) -> tuple[bool, str]:
     for layer in base.layers:
         att, mlp = layer.self_attn, layer.mlp
         lins = [att.q_proj, att.k_proj, att.v_proj, att.o_proj, mlp.gate_proj, mlp.up_proj, mlp.down_proj]
-        if any(type(m) is not nn.Linear for m in lins):
-            return False, "a layer projection is not a plain nn.Linear (adapter or quantised)"
+        why = next((w for w in map(_plain_or_lora, lins) if w is not None), None)
+        if why is not None:
+            return False, f"a layer projection: {why} (quantised or another adapter)"
         for norm in (layer.input_layernorm, layer.post_attention_layernorm):
             if not type(norm).__name__.endswith("RMSNorm") or not hasattr(norm, "variance_epsilon"):
                 return False, "a layer norm is not a Llama-style RMSNorm"
         if hasattr(att, "q_norm") or hasattr(att, "k_norm"):
             return False, "q/k norms are not implemented in the lean path"
-    return True, f"lean Llama-family path ({mt})"
+    return True, f"lean Llama-family path ({mt}{', LoRA fused' if lora else ''})"
 
 
 class LeanLlama:
@@ -107,10 +150,12 @@ class LeanLlama:
     PREFILL_MAX_MASK = 1 << 22  # bound on chunk * Tp * Tp attention-mask entries
 
     def __init__(self, model):
+        if hasattr(model, "peft_config"):  # LoRA: base + adapter deltas fused below (`_weight`)
+            model = model.get_base_model()
         cfg = model.config
         base = model.model
-        self.device = model.lm_head.weight.device
-        self.dtype = model.lm_head.weight.dtype
+        self.device = _weight(model.lm_head).device
+        self.dtype = _weight(model.lm_head).dtype
         att0 = base.layers[0].self_attn
         self.D = D = getattr(att0, "head_dim", None) or cfg.hidden_size // cfg.num_attention_heads
         self.H = H = cfg.num_attention_heads
@@ -135,8 +180,7 @@ class LeanLlama:
         def t(w):  # (out, in) -> contiguous (in, out) for x @ w
             return w.t().contiguous().to(self.dtype)
 
-        def bias(m):
-            return None if m.bias is None else m.bias.detach()
+        bias = _linear_bias
 
         self.layers = []
         for layer in base.layers:
@@ -144,22 +188,23 @@ class LeanLlama:
             g1, c1 = fold(layer.input_layernorm)
             g2, c2 = fold(layer.post_attention_layernorm)
             sc = float(getattr(a, "scaling", D ** -0.5))
-            wq = qk_rows(a.q_proj.weight.detach().float(), H) * sc  # softmax scale folded into q
-            wk = qk_rows(a.k_proj.weight.detach().float(), Hkv)
-            qkv_w = t(torch.cat([wq, wk, a.v_proj.weight.detach().float()], 0) * g1)  # (d, NH*D)
+            wq = qk_rows(_weight(a.q_proj).float(), H) * sc  # softmax scale folded into q
+            wk = qk_rows(_weight(a.k_proj).float(), Hkv)
+            qkv_w = t(torch.cat([wq, wk, _weight(a.v_proj).float()], 0) * g1)  # (d, NH*D)
             qkv_b = None
-            if a.q_proj.bias is not None:
-                qkv_b = torch.cat([qk_rows(a.q_proj.bias.detach().float(), H) * sc,
-                                   qk_rows(a.k_proj.bias.detach().float(), Hkv),
-                                   a.v_proj.bias.detach().float()]).to(self.dtype)
-            gu_w = t(torch.cat([m.gate_proj.weight, m.up_proj.weight], 0).detach().float() * g2)  # (d, 2I)
-            gu_b = None if m.gate_proj.bias is None else torch.cat([m.gate_proj.bias, m.up_proj.bias]).detach()
-            inter = m.gate_proj.weight.shape[0]
-            self.layers.append((c1, qkv_w, qkv_b, t(a.o_proj.weight.detach()), bias(a.o_proj),
-                                c2, gu_w, gu_b, inter, t(m.down_proj.weight.detach()), bias(m.down_proj)))
+            if bias(a.q_proj) is not None:
+                qkv_b = torch.cat([qk_rows(bias(a.q_proj).float(), H) * sc,
+                                   qk_rows(bias(a.k_proj).float(), Hkv),
+                                   bias(a.v_proj).float()]).to(self.dtype)
+            gate_w, up_w = _weight(m.gate_proj), _weight(m.up_proj)
+            gu_w = t(torch.cat([gate_w, up_w], 0).float() * g2)  # (d, 2I)
+            gu_b = None if bias(m.gate_proj) is None else torch.cat([bias(m.gate_proj), bias(m.up_proj)])
+            inter = gate_w.shape[0]
+            self.layers.append((c1, qkv_w, qkv_b, t(_weight(a.o_proj)), bias(a.o_proj),
+                                c2, gu_w, gu_b, inter, t(_weight(m.down_proj)), bias(m.down_proj)))
         gf, self.cf = fold(base.norm)
-        self.head_w = t(model.lm_head.weight.detach().float() * gf)  # (d, V)
-        self.head_b = None if model.lm_head.bias is None else model.lm_head.bias.detach()
+        self.head_w = t(_weight(model.lm_head).float() * gf)  # (d, V)
+        self.head_b = bias(model.lm_head)
         self._bound = -1
         self._cis = None
 

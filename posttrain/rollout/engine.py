@@ -53,8 +53,13 @@ _lean_cache: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
 def _weights_signature(model) -> tuple:
-    """Changes whenever a parameter is replaced or updated in place (optimizer steps bump `_version`)."""
-    return tuple((p.data_ptr(), p._version) for p in model.parameters())
+    """Changes whenever a parameter is replaced or updated in place (optimizer steps bump `_version`), or
+    LoRA adapters are switched on / off, merged or swapped."""
+    sig = tuple((p.data_ptr(), p._version) for p in model.parameters())
+    if hasattr(model, "peft_config"):
+        sig += tuple((m.disable_adapters, m.merged, tuple(m.active_adapters)) for m in model.modules()
+                     if hasattr(m, "lora_A"))
+    return sig
 
 
 def select_backend(model, max_len: int = 0, backend: str = "auto"):

@@ -264,7 +264,7 @@ def resolve_proxy_rm(res: Resolved, ensure, spec: str, need: bool) -> Path | Non
 def train(res: Resolved, ensure) -> Path:
     """Train the SFT model with DPO on preference pairs; returns the final model directory."""
     from posttrain import evaluation, preferences, tasks
-    from posttrain.models import load_model, load_tokenizer, save_model
+    from posttrain.models import load_model, load_tokenizer, maybe_lora, reference_view, save_model
     from posttrain.scoring import RewardModelScorer
 
     cfg: DPOConfig = res.stage_cfg
@@ -321,7 +321,7 @@ def train(res: Resolved, ensure) -> Path:
     # The SFT model: first the reference (log-probs of every pair, the SFT baseline completions),
     # then, unchanged, the policy. No second copy unless reference=live.
     t0 = time.time()
-    model = load_model(sft_dir, device=accelerator.device)
+    model = maybe_lora(res, load_model(sft_dir, device=accelerator.device), say)  # LoRA: adapters start at 0
     ref_train = ref_eval = None
     ref_model = None
     if cfg.reference == "precomputed":
@@ -337,7 +337,8 @@ def train(res: Resolved, ensure) -> Path:
         say(f"[dpo] reference log-probs of {len(used)} training and {len(eval_pairs)} held-out pairs "
             f"precomputed in {time.time() - t0:.1f}s; no reference model is kept in memory")
     else:
-        ref_model = load_model(sft_dir, device=accelerator.device).eval().requires_grad_(False)
+        ref_model = reference_view(model) if res.use_lora else \
+            load_model(sft_dir, device=accelerator.device).eval().requires_grad_(False)
     baseline = evaluation.complete(model, tokenizer, [r["prompt"] for r in gen_rows],
                                    max_new_tokens=cfg.max_new_tokens) if (gen_rows and main) else []
     proxy = RewardModelScorer(rm_dir, device=accelerator.device) if (rm_dir is not None and main) else None
@@ -345,8 +346,13 @@ def train(res: Resolved, ensure) -> Path:
         say(f"[dpo] proxy reward model: {rm_dir}")
 
     def reference_for_eval():
-        """The reference model for KL / online labelling: the live copy, or loaded from disk for now."""
-        return ref_model if ref_model is not None else load_model(sft_dir, device=accelerator.device).eval()
+        """The reference model for KL / online labelling: the live copy, the policy with its LoRA adapters
+        off (no copy), or loaded from disk for now."""
+        if ref_model is not None:
+            return ref_model
+        if res.use_lora:
+            return reference_view(accelerator.unwrap_model(model))
+        return load_model(sft_dir, device=accelerator.device).eval()
 
     optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
     scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)

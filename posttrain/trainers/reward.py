@@ -124,7 +124,7 @@ def load_reward_init(sft_dir: Path, pad_id: int, seed: int, device):
 def train(res: Resolved, ensure) -> Path:
     """Train a reward model on preference pairs; returns the final HF directory."""
     from posttrain import preferences
-    from posttrain.models import load_tokenizer, save_model
+    from posttrain.models import load_tokenizer, maybe_lora, save_model
 
     cfg: RMConfig = res.stage_cfg
     run_dir = res.stage_dir()
@@ -158,7 +158,8 @@ def train(res: Resolved, ensure) -> Path:
         save_resolved(res, run_dir / "config.yaml")
     accelerator.wait_for_everyone()
 
-    model = load_reward_init(sft_dir, pad_id, cfg.seed, accelerator.device)
+    # LoRA: adapters on the transformer, the new score head trained fully (peft's SEQ_CLS modules_to_save)
+    model = maybe_lora(res, load_reward_init(sft_dir, pad_id, cfg.seed, accelerator.device), say, "SEQ_CLS")
     micro = cfg.micro_batch_size or cfg.batch_size
     per_process = max(1, cfg.batch_size // accelerator.num_processes)
     optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)

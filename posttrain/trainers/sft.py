@@ -144,7 +144,7 @@ def train(res: Resolved, ensure) -> Path:
     """Fine-tune the base model (`ensure("base")`: a preset built from scratch or a local HF dir)
     on the task; returns the final model directory."""
     from posttrain import evaluation, tasks
-    from posttrain.models import load_model, load_tokenizer, save_model
+    from posttrain.models import load_model, load_tokenizer, maybe_lora, save_model
 
     cfg: SFTConfig = res.stage_cfg
     run_dir = res.stage_dir()
@@ -161,7 +161,7 @@ def train(res: Resolved, ensure) -> Path:
     accelerator.wait_for_everyone()
 
     tokenizer = load_tokenizer(base_dir)
-    model = load_model(base_dir, device=accelerator.device)
+    model = maybe_lora(res, load_model(base_dir, device=accelerator.device), say)
     train_pairs, dropped = tokenize_sft(train_rows, tokenizer, res.model.max_length)
     eval_pairs, _ = tokenize_sft(eval_rows[: cfg.eval_loss_rows], tokenizer, res.model.max_length)
     if dropped:

@@ -275,3 +275,41 @@ def test_the_recipe_chain_from_nothing(tmp_path, capsys):
     assert "proxy_reward" in ev["dpo"]
     # the SFT model of this small run rambles; DPO's pairs first of all teach the length band
     assert ev["dpo"]["mean_distance"] < ev["sft"]["mean_distance"], ev
+
+
+def test_lora_dpo_learns_with_no_reference_copy_and_saves_a_merged_model(world, tmp_path, capsys, monkeypatch):
+    """lora.enabled=true: only adapters train, the KL eval's reference is the policy with adapters off
+    (load_model is called once: the policy; no reference copy is loaded), final/ is a plain merged HF model."""
+    import posttrain.models as models
+
+    loads = []
+    real_load = models.load_model
+    monkeypatch.setattr(models, "load_model", lambda *a, **k: loads.append(a[0]) or real_load(*a, **k))
+    out = tmp_path / "lora"
+    assert main(_args(world, out, "max_steps=24", "lr=3e-3", "eval_every=12", "lora.enabled=true", "lora.r=8",
+                      "lora.alpha=16")) == 0
+    text = capsys.readouterr().out
+    assert "LoRA r=8" in text and "trainable of" in text
+    assert len(loads) == 1, loads  # the policy only: reference = adapters off
+    acc = [r["eval/rewards/accuracy"] for r in _metrics(out) if "eval/rewards/accuracy" in r]
+    assert acc[-1] >= 0.9, acc
+    final = out / "tiny-summarize" / "dpo" / "final"
+    assert not (final / "adapter_config.json").exists()
+    merged, base = real_load(final), real_load(world["sft"])
+    diff = {n: float((p - dict(base.named_parameters())[n]).abs().max()) for n, p in merged.named_parameters()}
+    assert diff["model.embed_tokens.weight"] == 0.0  # not adapted: untouched
+    assert diff["model.layers.0.self_attn.q_proj.weight"] > 0  # adapted: base + B @ A merged in
+
+
+def test_lora_config_errors():
+    from posttrain.config import ConfigError, resolve
+    from posttrain.trainers.dpo import DPOConfig
+
+    with pytest.raises(ConfigError, match="lora.stages"):
+        resolve("tiny-summarize", "dpo", DPOConfig, ["lora.enabled=true", "lora.stages=[dpo, sfft]"])
+    with pytest.raises(ConfigError, match="lora.r"):
+        resolve("tiny-summarize", "dpo", DPOConfig, ["lora.enabled=true", "lora.r=0"])
+    res = resolve("tiny-summarize", "dpo", DPOConfig, ["lora.enabled=true"])
+    assert res.use_lora and not res.for_stage("sft", DPOConfig).use_lora  # prerequisites train fully
+    res = resolve("tiny-summarize", "dpo", DPOConfig, ["lora.enabled=true", "lora.stages=[sft, dpo]"])
+    assert res.use_lora and res.for_stage("sft", DPOConfig).use_lora

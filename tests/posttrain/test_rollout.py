@@ -456,20 +456,48 @@ def test_collate_layout(trained):
         Rollout([1], [2, 3], [0.0], [0.0], "length", "x", 0, 0)
 
 
-def test_peft_model_uses_hf_path(trained):
+def test_lora_model_runs_the_lean_path_with_adapters_fused(trained):
+    """A peft LoRA model: the lean path fuses base + adapter deltas (logits equal the peft forward's),
+    sees adapter updates and `disable_adapter()` (the reference), and samples the same tokens and
+    log-probs as the HF forward of the same LoRA model. DoRA is refused with a reason."""
     peft = pytest.importorskip("peft")
+    from posttrain.models import reference_view
+
     model, tok, prompts = trained
     lora = peft.get_peft_model(__import__("copy").deepcopy(model),
-                               peft.LoraConfig(r=4, target_modules=["q_proj", "v_proj"], lora_dropout=0.0))
+                               peft.LoraConfig(r=4, lora_alpha=8, target_modules=["q_proj", "v_proj", "down_proj"],
+                                               lora_dropout=0.0))
     fwd, why = select_backend(lora, 64)
-    assert fwd.name == "hf" and "peft" in why
-    # A fresh LoRA adapter is the identity: same greedy text as the base model; log-probs recompute.
+    assert fwd.name == "lean" and "LoRA fused" in why
+    # A fresh adapter (B = 0) is the identity: the base model's greedy text.
     a = generate(model, tok, prompts, greedy=True, max_new_tokens=10)
-    b = generate(lora, tok, prompts, greedy=True, max_new_tokens=10)
-    assert [r.completion_ids for r in a] == [r.completion_ids for r in b]
-    batch = collate_rollouts(generate(lora, tok, prompts, max_new_tokens=10, seed=4), tok.pad_token_id)
+    assert [r.completion_ids for r in generate(lora, tok, prompts, greedy=True, max_new_tokens=10)] == \
+        [r.completion_ids for r in a]
+    with torch.no_grad():  # a trained-looking adapter: B != 0 (in place, as an optimizer step would)
+        for name, prm in lora.named_parameters():
+            if "lora_B" in name:
+                prm.normal_(0, 0.2)
+    lean = generate(lora, tok, prompts, n=2, max_new_tokens=12, seed=3)
+    hf = generate(lora, tok, prompts, n=2, max_new_tokens=12, seed=3, backend="hf")
+    assert [r.completion_ids for r in lean] == [r.completion_ids for r in hf]
+    assert [r.completion_ids for r in lean] != [r.completion_ids for r in
+                                                generate(model, tok, prompts, n=2, max_new_tokens=12, seed=3)]
+    torch.testing.assert_close(torch.tensor([x for r in lean for x in r.policy_logprobs]),
+                               torch.tensor([x for r in hf for x in r.policy_logprobs]), atol=1e-4, rtol=0)
+    batch = collate_rollouts(lean, tok.pad_token_id)
     lp, _ = batched_logprobs(lora, batch, micro_batch_size=3)
     torch.testing.assert_close(lp * batch.completion_mask, batch.policy_logprobs, atol=1e-4, rtol=0)
+    # Adapters off = the base model, in the engine and through reference_view (no weight copy).
+    with lora.disable_adapter():
+        off = generate(lora, tok, prompts, greedy=True, max_new_tokens=10)
+    assert [r.completion_ids for r in off] == [r.completion_ids for r in a]
+    ref_lp, _ = batched_logprobs(reference_view(lora), batch, micro_batch_size=3)
+    base_lp, _ = batched_logprobs(model, batch, micro_batch_size=3)
+    torch.testing.assert_close(ref_lp, base_lp, atol=1e-5, rtol=0)
+    dora = peft.get_peft_model(__import__("copy").deepcopy(model),
+                               peft.LoraConfig(r=4, target_modules=["q_proj"], use_dora=True))
+    fwd, why = select_backend(dora, 64)
+    assert fwd.name == "hf" and "variant" in why
 
 
 def test_token_id_prompts_without_tokenizer(trained):
