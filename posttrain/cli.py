@@ -67,6 +67,8 @@ STAGES: dict[str, Stage] = {
     "prefs": Stage("prefs", "preference pairs: samples of the SFT model ranked by the gold preference (or a file)", "posttrain.preferences", "PrefsConfig"),
     "rm": Stage("rm", "reward model: Bradley-Terry on preference pairs, a scalar head on the SFT model", "posttrain.trainers.reward", "RMConfig"),
     "dpo": Stage("dpo", "DPO / IPO / hinge on preference pairs, then gold win-rate against the SFT model", "posttrain.trainers.dpo", "DPOConfig"),
+    "grpo": Stage("grpo", "GRPO with verifier and/or reward-model rewards, then held-out accuracy against the SFT model", "posttrain.trainers.grpo", "GRPOConfig"),
+    "ppo": Stage("ppo", "PPO-for-RLHF against the reward model (or gold), then gold win-rate against the SFT model", "posttrain.trainers.ppo", "PPOConfig"),
 }
 
 
@@ -112,17 +114,32 @@ def ensure_base(res: Resolved) -> Path:
     base = res.stage_dir("base")
     want = {"preset": spec, "vocab_size": res.model.vocab_size, "seed": res.model.seed, "task": res.task.name,
             "task_seed": res.task.seed, "train_file": res.task.train_file, "max_length": res.model.max_length}
+    if res.model.split_digits:  # only stamped when set, so bases built before the option stay valid
+        want["split_digits"] = True
     stamp = base / "posttrain_base.json"
-    if is_model_dir(base) and stamp.is_file():
-        import json
+    import json
 
-        if json.loads(stamp.read_text()) == want:
-            return base
+    def built() -> bool:
+        return is_model_dir(base) and stamp.is_file() and json.loads(stamp.read_text()) == want
+
+    if built():
+        return base
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and int(os.environ.get("RANK", "0")) != 0:
+        # Launched as several processes (accelerate / torchrun): process 0 builds, the others wait for it.
+        import time
+
+        deadline = time.time() + 3600
+        while not built():
+            if time.time() > deadline:
+                raise ModelError(f"waited an hour for process 0 to build {base}; did it fail?")
+            time.sleep(0.5)
+        return base
+    if is_model_dir(base) and stamp.is_file():
         print(f"[base] {base} was built with other settings; rebuilding")
     texts = tasks.tokenizer_corpus(res.task)
     print(f"[base] building the {spec!r} model from scratch: tokenizer trained on {len(texts)} task texts -> {base}")
     model, tok = bootstrap(spec, texts, base, vocab_size=res.model.vocab_size, seed=res.model.seed,
-                           max_length=res.model.max_length)
+                           max_length=res.model.max_length, split_digits=res.model.split_digits)
     loop.write_json(stamp, want)
     print(f"[base] {count_parameters(model) / 1e6:.2f}M parameters, vocabulary {len(tok)}")
     return base

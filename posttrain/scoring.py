@@ -19,7 +19,9 @@ PPO, GRPO, online DPO and evaluation get rewards only through this interface, wh
 - `VerifierScorer`: a verifier spec ("math", "0.9*math+0.1*format", a `{name: weight}` mapping, a
   `Verifier`) run through `verifiers.runner.VerifierPool`: every check has a hard wall-clock limit;
   a hung or crashing check scores 0 with reason "timeout" / "crashed: ..." and the call returns.
-  A verifier that raises (its own bug) propagates as `VerifierError`.
+  A verifier that raises (its own bug) propagates as `VerifierError`; with `on_error="zero"` that
+  completion scores 0 with reason "verifier error: <type>: <message>" and the others are scored
+  (a training loop keeps going and reports it; the default "raise" stops).
 - `GoldScorer`: the task's gold metric, references are the task's `meta` dicts. tiny-summarize:
   reward = quality - length_weight * distance from the length band (see the class).
 - `WeightedScorer`: sum of w_i * reward_i; parts and reasons of every component, prefixed by name.
@@ -180,7 +182,7 @@ class VerifierScorer:
     """
 
     def __init__(self, spec: Any, pool=None, *, timeout_s: float | None = None, workers: int | None = None,
-                 name: str | None = None):
+                 name: str | None = None, on_error: str = "raise"):
         from verifiers.combine import WeightedVerifier
         from verifiers.registry import get_verifier
         from verifiers.runner import VerifierPool
@@ -195,11 +197,39 @@ class VerifierScorer:
         self.timeout_s = timeout_s
         self.name = name or self.verifier.name or "verifier"
         self._part_names = [label for label, _, _ in getattr(self.verifier, "parts", [])]
+        if on_error not in ("raise", "zero"):
+            raise ValueError(f"VerifierScorer on_error must be 'raise' or 'zero', got {on_error!r}")
+        self.on_error = on_error
+
+    def _verdicts(self, completions: list[str], refs: list[Any]) -> list:
+        """The pool's verdicts; with on_error="zero" an item whose check raised scores 0 and the rest are scored."""
+        if self.on_error == "raise":
+            return self.pool.score(self.verifier, completions, refs, timeout_s=self.timeout_s)
+        from verifiers.base import Verdict
+        from verifiers.runner import VerifierError
+
+        out: list[Any] = [None] * len(completions)
+        todo = list(range(len(completions)))
+        while todo:  # each raising item is taken out and the remaining ones are scored again
+            try:
+                got = self.pool.score(self.verifier, [completions[i] for i in todo], [refs[i] for i in todo],
+                                      timeout_s=self.timeout_s)
+            except VerifierError as e:
+                if e.index is None:  # the verifier cannot even load: nothing per-item about it
+                    raise
+                bad = todo.pop(e.index)
+                out[bad] = Verdict(0.0, f"verifier error: {e.exc_type}: {e.message[:300]}",
+                                   {"verifier_error": e.exc_type})
+                continue
+            for i, v in zip(todo, got):
+                out[i] = v
+            todo = []
+        return out
 
     def score(self, prompts, completions, references=None) -> ScoreResult:
         _check_lengths(prompts, completions, references)
         refs = list(references) if references is not None else [None] * len(completions)
-        verdicts = self.pool.score(self.verifier, list(completions), refs, timeout_s=self.timeout_s)
+        verdicts = self._verdicts(list(completions), refs)
         rewards = [float(v.score) for v in verdicts]
         if self._part_names:
             parts = {label: [float(v.details.get("parts", {}).get(label, {}).get("score", 0.0)) for v in verdicts]

@@ -9,6 +9,9 @@ Sections (`--only NAME`, repeatable; later issues add trainer sections to SECTIO
             loop.optimizer_step) against TRL's DPOTrainer (optional: `pip install -e '.[bench]'`) on
             the same tiny model, tiny-summarize pairs, batch (8), lr and beta, TRL set up for this CPU
             (fp32, no gradient checkpointing); tokens/s of the same pairs, reference log-probs included.
+  grpo      a GRPO step of `posttrain grpo` (the trainer, through the CLI) against TRL's GRPOTrainer on the
+            same random-init tiny model, prompts, 2 prompts x 8 completions x <= 64 tokens, reward (length
+            verifier), beta 0, one pass, TRL set up for this CPU (fp32, no gradient checkpointing); s/step.
 
 CPU:       python scripts/bench.py --quick            (< 2 min on 2 cores)
            python scripts/bench.py --only generate --threads 2 --json runs/bench.json
@@ -295,9 +298,148 @@ def bench_dpo(args) -> dict:
     return row
 
 
+# ------------------------------------------------------------------ section: grpo
+
+
+def bench_grpo(args) -> dict:
+    """A GRPO step of `posttrain grpo` (the trainer itself, run through the CLI) against one of TRL's GRPOTrainer.
+
+    Same random-init tiny model and tokenizer (vocabulary 1024), the same 64 prompts of 20 words, 2 prompts x
+    8 completions per step, at most 64 new tokens (a random model rarely samples eos, so rows run ~60 tokens
+    on both sides), temperature 1, the same reward (the length verifier, 150 characters budget: rewards vary
+    within groups), beta 0 (no reference model), one pass per batch, group-std advantages, token-mean loss
+    (TRL's "dapo"), lr 1e-4 constant, gradient clipping 1.0. TRL is configured for this CPU: fp32 (bf16=False),
+    gradient_checkpointing=False, no logging / saving. Time per step: ours is metrics.jsonl's time/step
+    (sampling + scoring + update); TRL's is timed between its on_step_begin and on_step_end callbacks (its
+    generation happens inside the step). The first 2 steps of every run are warm-up and excluded; runs
+    alternate; medians over all remaining steps.
+    """
+    import contextlib
+    import io
+    import shutil
+    import tempfile
+
+    from posttrain.cli import main as posttrain_main
+    from posttrain.models import save_model
+    from verifiers.format import LengthVerifier
+
+    steps = 8 if args.quick else 14
+    rounds = 1 if args.quick else 2
+    root = Path(tempfile.mkdtemp(prefix="posttrain-bench-grpo-"))
+    corpus = _corpus(300)
+    tok = train_tokenizer(corpus, vocab_size=1024)
+    base = build_model("tiny", tok, seed=0)
+    save_model(base, tok, root / "model")
+    prompts = [" ".join(c.split()[:20]) for c in corpus[:64]]
+    (root / "problems.jsonl").write_text("".join(json.dumps({"prompt": p, "answer": "-", "verifier": "length"}) + "\n"
+                                                for p in prompts))
+    recipe = root / "bench-grpo.yaml"
+    recipe.write_text(f"""# GRPO step benchmark (scripts/bench.py); posttrain grpo --recipe this file, ~1 min
+task: {{name: tiny-countdown, n_train: 16, n_eval: 8}}
+model: {{path: {root / 'model'}, max_length: 256}}
+grpo:
+  verifier: length
+  verifier_options: {{max_chars: 150}}
+  verifier_workers: 0
+  train_file: {root / 'problems.jsonl'}
+  prompts_per_step: 2
+  group_size: 8
+  max_new_tokens: {args.max_new_tokens}
+  zero_variance: keep
+  lr: 1.0e-4
+  eval_every: 0
+  eval_rows: 0
+  final_eval_rows: 0
+  save_every: 0
+""")
+    sft = root / "runs" / "bench-grpo" / "sft" / "final"
+    sft.parent.mkdir(parents=True)
+    shutil.copytree(root / "model", sft)
+    print(f"tiny: {count_parameters(base) / 1e6:.2f}M parameters; 2 prompts x 8 completions x <= {args.max_new_tokens} "
+          f"tokens per step, {steps} steps per run ({rounds} run(s) each, first 2 steps excluded)")
+
+    def ours() -> tuple[list[float], dict[str, float]]:
+        with contextlib.redirect_stdout(io.StringIO()):
+            rc = posttrain_main(["grpo", "--recipe", str(recipe), f"run.output_dir={root / 'runs'}",
+                                 f"run.threads={args.threads}", "run.quiet=true", f"max_steps={steps}"])
+        assert rc == 0, "posttrain grpo failed"
+        rows = [json.loads(l) for l in (root / "runs" / "bench-grpo" / "grpo" / "metrics.jsonl").read_text().splitlines()]
+        rows = [r for r in rows if "time/step" in r][2:]
+        phases = {k: statistics.median(r[f"time/{k}"] for r in rows) for k in ("sample", "score", "train")}
+        phases["completion_tokens"] = statistics.mean(r["completion/length"] for r in rows)
+        return [r["time/step"] for r in rows], phases
+
+    try:
+        from datasets import Dataset
+        from transformers import TrainerCallback
+        from transformers import logging as hf_logging
+        from transformers.trainer_callback import PrinterCallback
+        from trl import GRPOConfig as TRLConfig, GRPOTrainer
+    except ImportError as e:
+        print(f"TRL not installed ({e}); `pip install -e '.[bench]'` to compare. Ours alone:")
+        t, phases = ours()
+        print(f"ours: {statistics.median(t):.3f} s/step ({phases})")
+        return dict(ours_s_per_step=statistics.median(t), ours_phases=phases)
+    hf_logging.set_verbosity_error()
+    import datasets
+
+    datasets.disable_progress_bars()
+    length = LengthVerifier(max_chars=150)
+
+    def length_reward(completions, **kwargs):
+        return [length.check(c, None).score for c in completions]
+
+    class StepTimer(TrainerCallback):
+        def __init__(self):
+            self.times, self.t0, self.tokens = [], 0.0, []
+
+        def on_step_begin(self, *a, **k):
+            self.t0 = time.perf_counter()
+
+        def on_step_end(self, *a, **k):
+            _sync(args.device)
+            self.times.append(time.perf_counter() - self.t0)
+
+    def trl_run() -> list[float]:
+        import copy
+
+        targs = TRLConfig(output_dir=str(root / "trl"), per_device_train_batch_size=16, num_generations=8,
+                          max_completion_length=args.max_new_tokens, temperature=1.0, beta=0.0, num_iterations=1,
+                          learning_rate=1e-4, lr_scheduler_type="constant", max_grad_norm=1.0, max_steps=steps,
+                          bf16=False, fp16=False, gradient_checkpointing=False, use_cpu=args.device == "cpu",
+                          logging_strategy="no", save_strategy="no", report_to=[], disable_tqdm=True,
+                          dataloader_num_workers=0, seed=0)
+        timer = StepTimer()
+        with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+            trainer = GRPOTrainer(model=copy.deepcopy(base), reward_funcs=[length_reward], args=targs,
+                                  train_dataset=Dataset.from_list([{"prompt": p} for p in prompts]),
+                                  processing_class=tok, callbacks=[timer])
+            trainer.remove_callback(PrinterCallback)
+            out = trainer.train()
+        assert out.global_step == steps, f"TRL ran {out.global_step} steps, expected {steps}"
+        return timer.times[2:]
+
+    t_ours, t_trl, phases = [], [], {}
+    for _ in range(rounds):  # alternate, so drifting load hits both
+        t, phases = ours()
+        t_ours += t
+        t_trl += trl_run()
+    mo, mt = statistics.median(t_ours), statistics.median(t_trl)
+    print(f"{'implementation':<58} {'s/step':>7} {'ratio':>7}")
+    print(f"{'TRL GRPOTrainer (fp32, no gradient checkpointing)':<58} {mt:>7.3f} {mt / mo:>6.2f}x")
+    print(f"{'posttrain grpo':<58} {mo:>7.3f} {'1.00x':>7}")
+    print(f"posttrain phases (medians): sample {phases['sample']:.3f} s, score {phases['score']:.3f} s, "
+          f"update {phases['train']:.3f} s; {phases['completion_tokens']:.1f} completion tokens per row")
+    print("ratio = TRL time per step / posttrain time per step, same model, prompts, group size and budget.")
+    shutil.rmtree(root, ignore_errors=True)
+    return dict(steps_per_run=steps, rounds=rounds, ours_s_per_step=mo, trl_s_per_step=mt, ratio=mt / mo,
+                ours_phases=phases, ours_times=t_ours, trl_times=t_trl)
+
+
 SECTIONS = {
     "generate": bench_generate,
     "dpo": bench_dpo,
+    "grpo": bench_grpo,
 }
 
 

@@ -14,6 +14,9 @@ from types import ModuleType
 
 TASKS: dict[str, str] = {
     "tiny-summarize": "posttrain.tasks.summarize",
+    "tiny-math": "posttrain.tasks.math",
+    "tiny-countdown": "posttrain.tasks.countdown",
+    "tiny-code": "posttrain.tasks.code",
 }
 
 

@@ -1,0 +1,328 @@
+"""GRPO on a tiny model: it learns an easy verifiable reward; scoring never stalls a step; bad inputs are reported;
+diagnostics in words; resume, NaN, accumulation, reference-free beta = 0, dynamic sampling; the two recipes run."""
+import json
+import shutil
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from posttrain.cli import main
+from posttrain.tasks import countdown
+
+HERE = Path(__file__).resolve().parent
+VERIFIERS = HERE / "grpo_verifiers.py"
+
+
+@pytest.fixture(autouse=True)
+def _keep_torch_threads():
+    """The runs here use run.threads=1 (light on shared CPUs); give later tests their thread count back."""
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def sft_model(tmp_path_factory):
+    """A random tiny model with a tokenizer trained on countdown text: the 'SFT model' the stage starts from."""
+    from posttrain.models import bootstrap
+
+    root = tmp_path_factory.mktemp("grpo")
+    bootstrap("tiny", countdown.corpus(200, 0), root / "sft", vocab_size=256, seed=0, max_length=128,
+              split_digits=True)
+    return root / "sft"
+
+
+def _args(sft_model, out: Path, *extra: str) -> list[str]:
+    sft = out / "tiny-countdown" / "sft" / "final"
+    if not sft.exists():
+        sft.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copytree(sft_model, sft)  # the stage finds its "SFT model" and never runs SFT
+    return ["grpo", "--recipe", "tiny-countdown", f"run.output_dir={out}", "verifier=countdown",
+            "prompts_per_step=4", "group_size=4", "max_new_tokens=12", "max_steps=2", "eval_every=0", "eval_rows=8",
+            "final_eval_rows=8", "save_every=0", "lr=1e-3", "task.n_train=64", "task.n_eval=16", "run.quiet=true",
+            "run.threads=1", *extra]  # pinned: not the recipe's
+
+
+def _verifier(name: str) -> str:
+    return f"verifier={VERIFIERS}:{name}"
+
+
+def _metrics(out: Path) -> list[dict]:
+    return [json.loads(l) for l in (out / "tiny-countdown" / "grpo" / "metrics.jsonl").read_text().splitlines()]
+
+
+def _steps(out: Path) -> list[dict]:
+    return [r for r in _metrics(out) if "reward/mean" in r]
+
+
+# ----------------------------------------------------------------------------- learning
+def test_grpo_raises_an_easy_verifiable_reward(sft_model, tmp_path):
+    """Reward = fraction of digit characters; a random-init model starts near 3% and GRPO must raise it."""
+    out = tmp_path / "learn"
+    assert main(_args(sft_model, out, _verifier("digits"), "max_steps=30", "group_size=8", "final_eval_rows=0",
+                      "eval_rows=0")) == 0
+    r = [x["reward/mean"] for x in _steps(out)]
+    assert len(r) == 30
+    first, last = sum(r[:5]) / 5, sum(r[-5:]) / 5
+    assert last > first + 0.15 and last > 2 * first, (first, last)
+    assert (out / "tiny-countdown" / "grpo" / "final" / "model.safetensors").is_file()
+
+
+def test_diagnostics_per_step_and_eval(sft_model, tmp_path, capsys):
+    out = tmp_path / "diag"
+    assert main(_args(sft_model, out, f"verifier=0.8*countdown + 0.1*format + 0.1*{VERIFIERS}:digits", "beta=0.04",
+                      "eval_every=1", "zero_variance=keep", "save_rollouts_every=2")) == 0
+    steps = _steps(out)
+    for key in ("reward/mean", "reward/std", "pass/countdown", "pass/format", "reward/digits", "zero_var_frac",
+                "clip_frac", "kl", "entropy", "completion/length", "completion/truncated", "verifier/timeouts",
+                "verifier/scored", "time/sample", "time/score", "time/train", "loss", "grad_norm"):
+        assert key in steps[0], key
+    assert steps[0]["kl"] == pytest.approx(0.0, abs=1e-6)  # policy == reference before the first update
+    assert steps[1]["kl"] > 0  # the digits part gives the groups reward variance: the first update moved the policy
+    evals = [r for r in _metrics(out) if "eval/accuracy" in r]
+    assert [r["step"] for r in evals] == [0, 1, 2]
+    assert "eval/pass/countdown" in evals[0] and "eval/pass/format" in evals[0]
+    run = out / "tiny-countdown" / "grpo"
+    ev = json.loads((run / "eval.json").read_text())
+    assert ev["sft"]["eval/accuracy"] == evals[0]["eval/accuracy"] and "eval/accuracy" in ev["grpo"]
+    assert "held-out greedy accuracy on 8 problems: SFT" in capsys.readouterr().out
+    saved = [json.loads(l) for l in (run / "rollouts" / "step-000002.jsonl").read_text().splitlines()]
+    assert len(saved) == 16 and all(r["reward"] is not None and "reason" in r["extras_json"] for r in saved)
+
+
+def test_degenerate_groups_are_explained_in_words(sft_model, tmp_path, capsys):
+    out = tmp_path / "flat"
+    assert main(_args(sft_model, out, _verifier("constant"), "zero_variance=keep")) == 0
+    text = capsys.readouterr().out
+    assert "all 4 groups have zero reward variance" in text and "no completion is correct" in text
+    steps = _steps(out)
+    assert all(s["zero_var_frac"] == 1.0 and s["loss"] == 0.0 for s in steps)  # keep: trained on, loss exactly 0
+    out = tmp_path / "flat-skip"
+    assert main(_args(sft_model, out, _verifier("constant"))) == 0
+    assert all(s["updates"] == 0 and s["rows/trained"] == 0 for s in _steps(out))  # skip: no update at all
+
+
+# ----------------------------------------------------------------------------- scoring off the training path
+def test_hung_and_crashing_verifiers_score_zero_and_never_stall_a_step(sft_model, tmp_path, capsys):
+    out = tmp_path / "hang"
+    t0 = time.time()
+    assert main(_args(sft_model, out, _verifier("hang_or_crash"), "verifier_timeout_s=0.5", "final_eval_rows=0",
+                      "eval_rows=0")) == 0
+    assert time.time() - t0 < 60  # each hung check costs its 0.5 s limit, never more
+    steps = _steps(out)
+    assert sum(s["verifier/timeouts"] for s in steps) > 0 and sum(s["verifier/crashes"] for s in steps) > 0
+    text = capsys.readouterr().out
+    assert "verifier timeouts and" in text and "(the step went on)" in text
+
+
+def test_a_verifier_that_raises_is_reported_and_scored_zero_or_stops(sft_model, tmp_path, capsys):
+    out = tmp_path / "raise"
+    assert main(_args(sft_model, out, _verifier("raises_sometimes"), "final_eval_rows=0", "eval_rows=0")) == 0
+    text = capsys.readouterr().out
+    assert "the verifier raised on" in text and "verifier error: ValueError: cannot handle this completion" in text
+    assert sum(s["verifier/errors"] for s in _steps(out)) > 0
+    assert (out / "tiny-countdown" / "grpo" / "final").is_dir()  # the run finished
+    out = tmp_path / "raise-stop"
+    assert main(_args(sft_model, out, _verifier("raises_sometimes"), "on_verifier_error=stop", "final_eval_rows=0",
+                      "eval_rows=0")) == 1
+    err = capsys.readouterr().err
+    assert "raised ValueError at step 1 on a completion of training problem row" in err
+    assert "on_verifier_error=stop" in err and "no checkpoint was written yet" in err
+
+
+def test_verifier_scorer_on_error_zero_scores_the_others():
+    from posttrain.scoring import VerifierScorer
+    from verifiers.runner import VerifierError, VerifierPool
+
+    texts = [f"completion {i}" for i in range(12)] + ["<answer>1</answer>"]
+    with VerifierPool(workers=1) as pool:
+        with pytest.raises(VerifierError):
+            VerifierScorer(f"{VERIFIERS}:raises_sometimes", pool=pool).score(texts, texts, [None] * len(texts))
+        res = VerifierScorer(f"{VERIFIERS}:raises_sometimes", pool=pool, on_error="zero").score(
+            texts, texts, [None] * len(texts))
+    errors = [i for i, r in enumerate(res.reasons) if r.startswith("verifier error: ValueError")]
+    assert 0 < len(errors) < 12 and res.rewards[-1] == 1.0
+    assert all(res.rewards[i] == 0.0 for i in errors)
+
+
+def test_a_verifier_that_raises_on_worked_solutions_stops_before_anything_loads(sft_model, tmp_path, capsys):
+    out = tmp_path / "broken"
+    assert main(_args(sft_model, out, _verifier("always_raises"))) == 2
+    err = capsys.readouterr().err
+    assert "raised ValueError on the worked solution of task tiny-countdown (train) row 1: broken verifier" in err
+    assert not (out / "tiny-countdown" / "grpo").exists()
+
+
+# ----------------------------------------------------------------------------- bad inputs
+def test_unknown_verifier_name_is_a_config_error(sft_model, tmp_path, capsys):
+    out = tmp_path / "unknown"
+    assert main(_args(sft_model, out, "verifier=nosuch")) == 2
+    err = capsys.readouterr().err
+    assert "grpo.verifier: unknown verifier 'nosuch'; available: math" in err
+    assert not (out / "tiny-countdown" / "grpo").exists()
+    assert main(_args(sft_model, out, "estimator=reinforce_pp")) == 2
+    assert "set std_scale=batch" in capsys.readouterr().err
+
+
+def test_problems_without_a_reference_stop_with_the_row_or_are_skipped(sft_model, tmp_path, capsys, monkeypatch):
+    real = countdown.make_examples
+
+    def missing(n, seed, split):
+        rows = real(n, seed, split)
+        if split == "train":
+            rows[1].pop("answer")
+            rows[1]["meta"].pop("reference")
+            rows[4]["answer"] = ""
+            rows[4]["meta"].pop("reference")
+        return rows
+
+    monkeypatch.setattr(countdown, "make_examples", missing)
+    out = tmp_path / "noref"
+    assert main(_args(sft_model, out)) == 2
+    assert ("task tiny-countdown (train): row 2: no reference answer for the verifier"
+            in capsys.readouterr().err)
+    assert not (out / "tiny-countdown" / "grpo").exists()
+    assert main(_args(sft_model, out, "on_bad_rows=skip", "max_steps=1")) == 0
+    assert "skipped 2 of 64 problems of task tiny-countdown (train) without a reference answer (rows 2, 5)" \
+        in capsys.readouterr().out
+
+
+def test_a_problem_file_row_without_an_answer_is_named(sft_model, tmp_path, capsys):
+    rows = [{"prompt": r["prompt"], "answer": r["answer"], "verifier": "countdown"}
+            for r in countdown.make_examples(12, 0, "train")]
+    del rows[2]["answer"]
+    bad = tmp_path / "problems.jsonl"
+    bad.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert main(_args(sft_model, tmp_path / "file", f"train_file={bad}")) == 2
+    assert f"{bad}: row 3: field 'answer': missing" in capsys.readouterr().err
+    rows[2]["answer"] = rows[3]["answer"]
+    good = tmp_path / "good.jsonl"
+    good.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert main(_args(sft_model, tmp_path / "file2", f"train_file={good}", "verifier=auto", "max_steps=1")) == 0
+
+
+# ----------------------------------------------------------------------------- mechanics
+def test_beta_zero_loads_no_reference_model(sft_model, tmp_path, monkeypatch):
+    import posttrain.models as models
+
+    calls = []
+    real = models.load_model
+    monkeypatch.setattr(models, "load_model", lambda *a, **k: calls.append(a[0]) or real(*a, **k))
+    for beta, expected in (("0", 1), ("0.1", 2)):
+        calls.clear()
+        out = tmp_path / f"beta{beta}"
+        assert main(_args(sft_model, out, f"beta={beta}", "max_steps=1", "final_eval_rows=0", "eval_rows=0",
+                          _verifier("digits"))) == 0
+        assert len(calls) == expected, calls
+        assert ("kl" in _steps(out)[0]) == (beta != "0")
+
+
+def test_gradient_accumulation_and_old_logprobs_match(sft_model, tmp_path):
+    """Micro-batches of 3 rows give the loss and gradient of one forward over the 16 rows, for each aggregation;
+    the rollout engine's log-probs as pi_old give the step a recompute gives."""
+    for agg in ("token_mean", "seq_mean_token_mean", "seq_mean_token_sum_norm"):
+        first = []
+        for extra in ("micro_batch_size=0", "micro_batch_size=3", "old_logprobs=recompute"):
+            out = tmp_path / f"{agg}-{extra.replace('=', '')}"
+            assert main(_args(sft_model, out, "max_steps=1", "zero_variance=keep", f"aggregation={agg}",
+                              "final_eval_rows=0", "eval_rows=0", _verifier("digits"), extra)) == 0
+            first.append(_steps(out)[0])
+        for other in first[1:]:
+            assert other["loss"] == pytest.approx(first[0]["loss"], rel=1e-4, abs=1e-6), agg
+            assert other["grad_norm"] == pytest.approx(first[0]["grad_norm"], rel=1e-3), agg
+        assert first[0]["ratio_mean"] == pytest.approx(1.0, abs=1e-4)
+    got = []  # at temperature 0.7 pi_old is the engine's sampling log-probs: the same as a recompute at T=0.7
+    for extra in ("old_logprobs=rollout", "old_logprobs=recompute"):
+        out = tmp_path / f"t07-{extra.replace('=', '')}"
+        assert main(_args(sft_model, out, "max_steps=1", "zero_variance=keep", "temperature=0.7", "final_eval_rows=0",
+                          "eval_rows=0", _verifier("digits"), extra)) == 0
+        got.append(_steps(out)[0])
+    assert got[0]["ratio_mean"] == pytest.approx(1.0, abs=1e-4)
+    assert got[0]["loss"] == pytest.approx(got[1]["loss"], rel=1e-4, abs=1e-6)
+    assert got[0]["grad_norm"] == pytest.approx(got[1]["grad_norm"], rel=1e-3)
+
+
+def test_several_passes_clip_and_clip_higher(sft_model, tmp_path):
+    out = tmp_path / "mu"
+    assert main(_args(sft_model, out, _verifier("digits"), "mu=3", "minibatches=2", "lr=3e-3", "clip_eps=0.1",
+                      "clip_eps_high=0.3", "final_eval_rows=0", "eval_rows=0", "max_steps=1")) == 0
+    s = _steps(out)[0]
+    assert s["updates"] == 6  # 3 passes x 2 minibatches
+    assert s["clip_frac"] > 0 and s["ratio_max"] > 1.0  # later passes are off-policy: the ratio moves and clips
+
+
+def test_dynamic_sampling_resamples_degenerate_groups(sft_model, tmp_path):
+    out = tmp_path / "dapo"
+    assert main(_args(sft_model, out, "zero_variance=resample", "max_resample_rounds=2", "final_eval_rows=0",
+                      "eval_rows=0")) == 0  # countdown on a random model: nearly every group scores all 0
+    steps = _steps(out)
+    assert all(s["resample/rounds"] == 3 for s in steps) and all(s["zero_var_frac"] == 1.0 for s in steps)
+
+
+def test_masking_truncated_completions(sft_model, tmp_path):
+    out = tmp_path / "trunc"
+    assert main(_args(sft_model, out, _verifier("digits"), "max_new_tokens=4", "mask_truncated=true",
+                      "zero_variance=keep", "final_eval_rows=0", "eval_rows=0")) == 0
+    steps = _steps(out)
+    assert sum(s["completion/truncated"] for s in steps) > 1.5  # a random model rarely stops within 4 tokens
+    for s in steps:  # truncated rows get no loss: only the others are trained on
+        assert s["rows/trained"] == round(16 * (1 - s["completion/truncated"]))
+
+
+def test_injected_nan_stops_with_the_step_and_keeps_the_last_checkpoint(sft_model, tmp_path, capsys, monkeypatch):
+    import posttrain.trainers.grpo as grpo
+
+    calls = {"n": 0}
+    real = grpo.ppo_policy_loss
+
+    def flaky(*a, **k):
+        calls["n"] += 1
+        loss, m = real(*a, **k)
+        return (loss * float("nan") if calls["n"] == 3 else loss), m
+
+    monkeypatch.setattr(grpo, "ppo_policy_loss", flaky)
+    out = tmp_path / "nan"
+    assert main(_args(sft_model, out, _verifier("digits"), "max_steps=5", "save_every=1", "keep_checkpoints=10",
+                      "final_eval_rows=0", "eval_rows=0")) == 1
+    err = capsys.readouterr().err
+    ckpts = out / "tiny-countdown" / "grpo" / "checkpoints"
+    assert "non-finite loss (nan) at step 3" in err and f"last good checkpoint: {ckpts / 'step-000002'}" in err
+    assert sorted(p.name for p in ckpts.glob("step-*")) == ["step-000001", "step-000002"]
+    assert not (out / "tiny-countdown" / "grpo" / "final").exists()
+
+
+def test_resume_continues_exactly(sft_model, tmp_path):
+    from safetensors.torch import load_file
+
+    common = ("max_steps=4", _verifier("digits"), "eval_every=2", "final_eval_rows=8")
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    assert main(_args(sft_model, full, *common)) == 0
+    assert main(_args(sft_model, cut, *common[1:], "max_steps=2", "save_every=2")) == 0
+    assert main(_args(sft_model, cut, *common, "resume=true")) == 0
+    a = load_file(full / "tiny-countdown" / "grpo" / "final" / "model.safetensors")
+    b = load_file(cut / "tiny-countdown" / "grpo" / "final" / "model.safetensors")
+    for k in a:
+        assert torch.allclose(a[k], b[k], atol=1e-5), k
+    fa, fb = _steps(full), _steps(cut)
+    assert [r["step"] for r in fb] == [1, 2, 3, 4]
+    assert [r["reward/mean"] for r in fa] == pytest.approx([r["reward/mean"] for r in fb])
+    ea = json.loads((full / "tiny-countdown" / "grpo" / "eval.json").read_text())
+    eb = json.loads((cut / "tiny-countdown" / "grpo" / "eval.json").read_text())
+    assert ea["sft"] == eb["sft"] and ea["grpo"] == eb["grpo"]  # the SFT numbers survive the resume
+
+
+# ----------------------------------------------------------------------------- the recipes, end to end
+@pytest.mark.slow
+@pytest.mark.parametrize("recipe", ["tiny-countdown", "tiny-code"])
+def test_recipe_runs_from_nothing(recipe, tmp_path, capsys):
+    """`posttrain grpo --recipe NAME` on an empty run dir builds the base model and SFT, then runs GRPO
+    (the shipped recipe with smaller numbers)."""
+    out = tmp_path / recipe
+    assert main(["grpo", "--recipe", recipe, f"run.output_dir={out}", "run.threads=1", "run.quiet=true",
+                 "task.n_train=300", "task.n_eval=16", "sft.max_steps=30", "sft.final_eval_rows=0", "sft.eval_every=0",
+                 "max_steps=3", "eval_every=0", "eval_rows=8", "final_eval_rows=8", "prompts_per_step=4"]) == 0
+    text = capsys.readouterr().out
+    assert "running `posttrain sft" in text and "held-out greedy accuracy on 8 problems: SFT" in text
+    assert (out / recipe / "grpo" / "final" / "model.safetensors").is_file()
