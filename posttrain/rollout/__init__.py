@@ -47,12 +47,8 @@ Contract
   `torch.inference_mode` in eval mode (no dropout) and does per step: one forward, one sampler call
   (softmax, cumsum, searchsorted), three buffer writes, and one host sync for EOS (and one for stop
   candidates when stop strings are set). Fused weights are cached per model and rebuilt when any
-  parameter's version counter moved, so an optimizer step between calls is always seen. On CPU with
-  more than one torch thread, the rows are split into one group per thread (`workers`), decoded
-  concurrently by single-threaded worker threads over the same fused weights (a KV cache each):
-  every op runs in parallel instead of only the matmuls, and no OpenMP barrier stalls when another
-  process holds a core. Results are identical to workers=1 (tested). Not thread-safe: one
-  `generate` at a time per model. `tune_malloc` raises glibc's malloc thresholds
+  parameter's version counter moved, so an optimizer step between calls is always seen. Not
+  thread-safe: one `generate` at a time per model. `tune_malloc` raises glibc's malloc thresholds
   once per process (see there). Measured speed: `scripts/bench.py`.
 """
 from .backends import LeanLlama, lean_support

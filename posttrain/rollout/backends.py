@@ -37,7 +37,6 @@ Not thread-safe: one `generate` at a time per model.
 """
 from __future__ import annotations
 
-import copy
 import math
 
 import torch
@@ -248,12 +247,6 @@ class LeanLlama:
         self.cis = self._cis
         self.rows, self.cols = rows, cols
         self._bound = -1
-
-    def session(self) -> "LeanLlama":
-        """A second decoder over the same fused weights with a KV cache of its own (one per worker thread)."""
-        other = copy.copy(self)
-        other.release()
-        return other
 
     def release(self) -> None:
         """Drop the KV cache (the fused weights stay for the next call)."""

@@ -120,7 +120,7 @@ def _eos_ids(model, tokenizer) -> list[int]:
 
 def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling: SamplingParams | None = None, *,
              prompt_keys: Sequence[int] | None = None, max_batch_tokens: int = DEFAULT_MAX_BATCH_TOKENS,
-             backend: str = "auto", workers: int | None = None, **overrides) -> list[Rollout]:
+             backend: str = "auto", **overrides) -> list[Rollout]:
     """Sample `n` completions for each prompt; returns Rollouts ordered by (prompt_index, sample_index).
 
     prompts: strings (tokenized with `add_special_tokens=True`) or lists of token ids, any lengths.
@@ -130,12 +130,6 @@ def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling:
     max_batch_tokens: KV-cache budget; rows are split into micro-batches with
         rows * (longest prompt + max_new_tokens) <= max_batch_tokens (at least one row each).
     backend: "auto" (lean path when supported, else HF forward), "lean" or "hf".
-    workers: decode workers (lean path only). The rows are split into that many groups (the samples of
-        a prompt stay together) decoded concurrently by as many threads, each running torch single-
-        threaded: every op of the loop then runs in parallel, where intra-op threading only splits
-        the matmuls (small element-wise ops run on one thread) and stalls at its barriers whenever a
-        core is busy elsewhere. None: one worker per torch thread, at most one per MIN_ROWS_PER_WORKER
-        rows; 1: the plain loop with torch's intra-op threads. Results do not depend on it.
     """
     params = sampling or SamplingParams()
     if overrides:
@@ -189,89 +183,21 @@ def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling:
     eos = [] if params.ignore_eos else _eos_ids(model, tokenizer)
     pad_id = tokenizer.pad_token_id if tokenizer is not None and tokenizer.pad_token_id is not None else 0
 
+    batches = plan_micro_batches([len(p) for p in ids], params.n, params.max_new_tokens, max_batch_tokens)
     results: dict[tuple[int, int], tuple[list[int], list[float], list[float], str]] = {}
     model_was_training = getattr(model, "training", False)
     if isinstance(fwd, HFForward) and model_was_training:
         model.eval()
-    n_workers = _n_workers(workers, fwd, len(ids) * params.n)
-    groups = split_rows([len(p) for p in ids], params.n, params.max_new_tokens, n_workers)
-
-    def run(fwd_w, group: list[int]) -> None:
-        with torch.inference_mode():
-            for rows in plan_micro_batches([len(ids[i]) for i in group], params.n, params.max_new_tokens,
-                                           max_batch_tokens):
-                rows = [(group[i], j) for i, j in rows]
-                _run_micro_batch(fwd_w, rows, sampler, params, ids, limits, keys, eos, stop_table, tokenizer,
-                                 pad_id, results)
-        fwd_w.release()
-
     try:
-        if len(groups) == 1:
-            run(fwd, groups[0])
-        else:
-            _run_parallel(run, [fwd.session() for _ in groups], groups)
+        with torch.inference_mode():
+            for rows in batches:
+                _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_table, tokenizer, pad_id,
+                                 results)
     finally:
         fwd.release()
         if isinstance(fwd, HFForward) and model_was_training:
             model.train()
     return _finish(results, ids, texts, params, tokenizer)
-
-
-MIN_ROWS_PER_WORKER = 8
-
-
-def _n_workers(workers: int | None, fwd, rows: int) -> int:
-    if workers is not None:
-        if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
-            raise ValueError(f"generate: workers must be an integer >= 1, got {workers!r}")
-    else:
-        workers = torch.get_num_threads()
-    if not isinstance(fwd, LeanLlama) or fwd.device.type != "cpu":
-        return 1
-    return max(1, min(workers, rows // MIN_ROWS_PER_WORKER))
-
-
-def split_rows(lengths: list[int], n: int, max_new: int, groups: int) -> list[list[int]]:
-    """Prompt indices split into `groups` groups of about equal work (rows x (prompt + max_new) tokens):
-    prompts in length order are dealt to the currently lightest group, so each group also spans similar
-    lengths (little padding). A prompt's n samples stay in one group (one shared prefill)."""
-    if groups <= 1:
-        return [list(range(len(lengths)))]
-    order = sorted(range(len(lengths)), key=lambda i: (lengths[i], i))
-    load = [0] * groups
-    out: list[list[int]] = [[] for _ in range(groups)]
-    for i in order:
-        g = min(range(groups), key=lambda k: (load[k], k))
-        out[g].append(i)
-        load[g] += n * (lengths[i] + max_new)
-    return [g for g in out if g]
-
-
-def _run_parallel(run, sessions, groups) -> None:
-    """run(session, group) for each group on its own thread, torch single-threaded meanwhile; the first
-    error is re-raised here after every thread has stopped."""
-    import threading
-
-    threads_before = torch.get_num_threads()
-    errors: list[BaseException] = []
-
-    def work(session, group):
-        try:
-            torch.set_num_threads(1)
-            run(session, group)
-        except BaseException as e:  # re-raised in the calling thread
-            errors.append(e)
-
-    ts = [threading.Thread(target=work, args=(s, g), daemon=True) for s, g in zip(sessions, groups)]
-    try:
-        for t in ts:
-            t.start()
-        for t in ts:
-            t.join()
-    finally:
-        torch.set_num_threads(threads_before)
-    if errors:
-        raise errors[0]
 
 
 def plan_micro_batches(lengths: list[int], n: int, max_new: int, budget: int) -> list[list[tuple[int, int]]]:

@@ -321,40 +321,6 @@ def test_finished_rows_dropped_do_not_change_others(trained):
         model.generation_config.eos_token_id = old
 
 
-
-def test_parallel_workers_give_the_same_rollouts(trained, monkeypatch):
-    """workers=3 (three threads, each decoding a third of the rows single-threaded) == workers=1, with
-    EOS, stop strings and rows of different lengths; torch's thread count is restored; a worker's
-    error reaches the caller."""
-    from posttrain.rollout import engine
-
-    model, tok, prompts = trained
-    many = prompts * 4  # 24 prompts x n=2 = 48 rows: three workers of 16
-    kw = dict(n=2, max_new_tokens=18, temperature=1.1, seed=5, stop=[" has"])
-    one = generate(model, tok, many, workers=1, **kw)
-    three = generate(model, tok, many, workers=3, **kw)
-    assert {r.finish_reason for r in one} >= {"stop", "length"}
-    assert [(r.completion_ids, r.finish_reason, r.text) for r in three] == \
-        [(r.completion_ids, r.finish_reason, r.text) for r in one]
-    torch.testing.assert_close(torch.tensor([x for r in three for x in r.logprobs]),
-                               torch.tensor([x for r in one for x in r.logprobs]), atol=1e-4, rtol=0)
-    assert torch.get_num_threads() == 1
-    assert engine._n_workers(None, engine.select_backend(model)[0], 7) == 1  # too few rows to split
-    with pytest.raises(ValueError, match="workers must be an integer >= 1"):
-        generate(model, tok, many, workers=0)
-
-    calls = []
-
-    def boom(*a, **k):
-        calls.append(1)
-        raise RuntimeError("worker failed")
-
-    monkeypatch.setattr(engine, "_run_micro_batch", boom)
-    with pytest.raises(RuntimeError, match="worker failed"):
-        generate(model, tok, many, workers=2, **kw)
-    assert len(calls) == 2 and torch.get_num_threads() == 1
-
-
 # ------------------------------------------------------------------ top-k / top-p distribution
 
 
