@@ -86,8 +86,7 @@ VERIFIER = "math"
 PROMPT_TEMPLATE = "Question: {problem}\nAnswer:"
 
 EVAL_FRACTION_BUCKETS = 5  # a number tuple goes to eval when sha1 % 5 == 0 (~20%)
-DIRECT_PROB = 0.5  # train rows whose completion states the answer without working (see "Two styles")
-CHECK_PROB = 0.25  # worked train solutions with a "Check:" line
+CHECK_PROB = 0.25  # train solutions with a "Check:" line
 STEPS = (2, 3)  # operations per problem, equally likely
 START_RANGE = (10, 99)
 OPERAND_RANGE = (1, 99)
@@ -207,14 +206,10 @@ def _problem(rng: random.Random, split: str) -> dict[str, Any]:
         text = clause.format(pro=who, n=n)
         sentences.append(_cap(opener + text) if opener else _cap(text))
     sentences.append(QUESTIONS[question].format(Name=name, pro=pro, items=items))
-    direct = split == "train" and rng.random() < DIRECT_PROB
-    check = split == "train" and not direct and rng.random() < CHECK_PROB
+    check = split == "train" and rng.random() < CHECK_PROB
     completion, answer, carries = solution(start, ops, check)
-    if direct:
-        completion = f" The answer is {answer}."
     meta = {"task": TASK_NAME, "answer": str(answer), "start": start, "ops": [[s, n] for s, n in ops],
-            "n_steps": len(ops), "carries": carries, "style": "direct" if direct else "worked", "check": check,
-            "template": [frame, question], "split": split}
+            "n_steps": len(ops), "carries": carries, "check": check, "template": [frame, question], "split": split}
     return {"prompt": PROMPT_TEMPLATE.format(problem=" ".join(sentences)), "completion": completion,
             "answer": str(answer), "verifier": VERIFIER, "meta": meta}
 

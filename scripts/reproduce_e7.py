@@ -1,0 +1,659 @@
+"""E7 (seed §16): reasoning-RL on tiny-math -- GRPO against best-of-K and majority-vote sampling of the SFT model.
+
+Pipeline, through the public CLI and API only:
+  1. `python -m posttrain sft --recipe tiny-math`: tokenizer + tiny model from scratch, then SFT on worked
+     digit-by-digit solutions, stopped on purpose at partial accuracy (see the recipe). Timed.
+  2. Baselines without RL, on the same N held-out problems: greedy accuracy, and 16 samples per problem at
+     temperature 1 from the rollout engine (`posttrain.rollout.generate`, n=16), scored by the math
+     verifier in a worker pool (`verifiers.runner.VerifierPool`). From them, for K in {1, 4, 16}:
+     - pass@K: verifier-oracle best-of-K (some sample of K is right), the unbiased estimator of
+       Chen et al. 2021 (1 - C(n-c, K) / C(n, K)); the whole curve K = 1..16 is computed too;
+     - maj@K: majority vote over the verifier's normalised extracted answers (no answer = no vote; a
+       tie at the top counts 1/ties when the right answer is among the tied), averaged over the 16/K
+       disjoint groups of K samples.
+     pass@K needs the reference at inference time (an oracle); maj@K does not.
+  3. `python -m posttrain grpo --recipe tiny-math` from that SFT model, timed, with the training rollouts
+     saved every few steps. Its metrics.jsonl gives the held-out greedy accuracy curve, the response
+     length of training samples and of held-out greedy answers over training, and the tokens sampled.
+  4. The same evaluation of the GRPO model (greedy, pass@K, maj@K), the frequency of verification and
+     self-correction phrases before and after RL (held-out greedy answers and samples, and the saved
+     training rollouts over steps), and the compute of each route: training time and tokens (SFT, GRPO)
+     against inference samples and tokens per problem.
+  5. Report under --out: report.md, PNG plots, e7.json (the data of every figure and table).
+
+CPU:  python scripts/reproduce_e7.py            the shipped recipe; ~30-35 min on 2 cores
+      python scripts/reproduce_e7.py --quick    a smoke run of the same pipeline (short SFT and GRPO, 40
+                                                held-out problems); a few minutes
+Multi-GPU: each stage accepts `accelerate launch`; this script runs them one process at a time.
+Options: --out DIR (default runs/e7 or runs/e7-quick), --threads N (torch threads per stage and for the
+         evaluation here; 0 = torch's default), --eval-rows N, --fresh (redo everything; by default a
+         finished SFT or GRPO run in --out is reused), any number of `--set stage.key=value` overrides
+         passed to both CLI stages (e.g. --set grpo.max_steps=100).
+
+Phrases counted (`posttrain.tasks.math.behaviour_counts`): verification = "check" (the SFT data teaches an
+optional "Check: a+b=c" line in 25% of training solutions, so its frequency can move under RL);
+self-correction = wait / redo / mistake / actually / let me / again (never in the SFT data).
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+RECIPE = "tiny-math"
+KS = (1, 4, 16)  # samples per problem for best-of-K / majority vote
+N_SAMPLES = max(KS)  # samples drawn per problem; every K is estimated from these
+SAMPLE_TEMPERATURE = 1.0  # the temperature GRPO samples at
+QUICK = ["sft.max_steps=120", "grpo.max_steps=6", "grpo.eval_every=3", "grpo.eval_rows=40",
+         "grpo.final_eval_rows=40", "grpo.save_every=0"]
+
+
+# ----------------------------------------------------------------------------- running stages
+def posttrain(stage: str, output_dir: Path, threads: int, log: Path, overrides: list[str]) -> float:
+    """Run `python -m posttrain STAGE --recipe tiny-math` as a user would; the wall time; raises with the log's tail."""
+    cmd = [sys.executable, "-m", "posttrain", stage, "--recipe", RECIPE, f"run.output_dir={output_dir}",
+           f"run.threads={threads}", *overrides]
+    env = dict(os.environ)
+    if threads:
+        env["OMP_NUM_THREADS"] = str(threads)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    with open(log, "w") as f:
+        f.write("$ " + " ".join(cmd) + "\n")
+        f.flush()
+        rc = subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
+    took = time.time() - t0
+    if rc != 0:
+        tail = "\n".join(log.read_text().splitlines()[-15:])
+        raise SystemExit(f"reproduce_e7: `posttrain {stage}` failed (exit {rc}); log {log}:\n{tail}")
+    print(f"[e7] posttrain {stage}: {took:.0f}s (log {log})", flush=True)
+    return took
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    return [json.loads(l) for l in path.read_text().splitlines() if l.strip()] if path.is_file() else []
+
+
+def read_yaml(path: Path) -> dict:
+    import yaml
+
+    return yaml.safe_load(path.read_text()) if path.is_file() else {}
+
+
+# ----------------------------------------------------------------------------- estimators
+def pass_at_k(n: int, c: int, k: int) -> float:
+    """Unbiased pass@k from n samples of which c are right (Chen et al. 2021, "Evaluating Large Language
+    Models Trained on Code", eq. 1): 1 - C(n-c, k) / C(n, k)."""
+    if n - c < k:
+        return 1.0
+    return 1.0 - math.comb(n - c, k) / math.comb(n, k)
+
+
+def majority_correct(votes: list[tuple[str | None, bool]]) -> float:
+    """Credit of a majority vote over (answer key, right?) pairs: 1 if the right answer has the most votes,
+    1/t if it ties with t-1 others, else 0. Samples without an answer do not vote."""
+    counts = collections.Counter(key for key, _ in votes if key is not None)
+    if not counts:
+        return 0.0
+    right = {key for key, ok in votes if ok and key is not None}
+    top = max(counts.values())
+    leaders = [key for key, c in counts.items() if c == top]
+    return sum(key in right for key in leaders) / len(leaders)
+
+
+def answer_key(verdict) -> str | None:
+    """The verifier's normalised extracted answer (what majority voting compares), None when there is none."""
+    d = verdict.details or {}
+    if d.get("extracted") is None or verdict.reason in ("no answer found", "answer retracted"):
+        return None
+    return str(d.get("normalized") or d.get("extracted"))
+
+
+# ----------------------------------------------------------------------------- evaluation of one model
+def evaluate_model(model_dir: Path, rows: list[dict], max_new_tokens: int, pool, seed: int = 0) -> dict:
+    """Greedy and N_SAMPLES-sample evaluation of one model on held-out rows; everything the report needs."""
+    import torch
+
+    from posttrain.models import load_model, load_tokenizer
+    from posttrain.rollout import SamplingParams, generate
+    from posttrain.tasks import math as task
+    from verifiers.registry import get_verifier
+
+    verifier = get_verifier("math")
+    tok, model = load_tokenizer(model_dir), load_model(model_dir)
+    prompts, refs = [r["prompt"] for r in rows], [r["answer"] for r in rows]
+    keys = list(range(len(rows)))
+    out: dict = {"model": str(model_dir), "rows": len(rows)}
+    with torch.no_grad():
+        t0 = time.time()
+        greedy = generate(model, tok, prompts, SamplingParams(greedy=True, max_new_tokens=max_new_tokens),
+                          prompt_keys=keys)
+        t_greedy = time.time() - t0
+        t0 = time.time()
+        samples = generate(model, tok, prompts, SamplingParams(n=N_SAMPLES, temperature=SAMPLE_TEMPERATURE,
+                                                               max_new_tokens=max_new_tokens, seed=seed),
+                           prompt_keys=keys)
+        t_samples = time.time() - t0
+    g_verdicts = pool.score(verifier, [r.text for r in greedy], refs)
+    s_verdicts = pool.score(verifier, [r.text for r in samples], [refs[r.prompt_index] for r in samples])
+    g_right = [v.score >= 1.0 for v in g_verdicts]
+    per_problem = [[] for _ in rows]  # (key, right) per sample, in sample order
+    for r, v in zip(samples, s_verdicts):
+        per_problem[r.prompt_index].append((answer_key(v), v.score >= 1.0))
+    n = N_SAMPLES
+    pass_curve = [sum(pass_at_k(n, sum(ok for _, ok in p), k) for p in per_problem) / len(rows)
+                  for k in range(1, n + 1)]
+    maj = {}
+    for k in KS:
+        groups = [p[i:i + k] for p in per_problem for i in range(0, n, k)]
+        maj[k] = sum(majority_correct(g) for g in groups) / len(groups)
+    g_len = [len(r.completion_ids) for r in greedy]
+    s_len = [len(r.completion_ids) for r in samples]
+    n_right = [sum(ok for _, ok in p) for p in per_problem]
+    out.update({
+        "greedy_accuracy": sum(g_right) / len(rows),
+        "sample_accuracy": pass_curve[0],
+        "pass_at_k": {k: pass_curve[k - 1] for k in KS},
+        "pass_curve": pass_curve,
+        "maj_at_k": maj,
+        "frac_mixed_groups_of_8": sum(0 < pass_at_k(n, c, 8) < 1 for c in n_right) / len(rows),
+        "frac_some_right_of_16": sum(c > 0 for c in n_right) / len(rows),
+        "frac_all_right_of_16": sum(c == n for c in n_right) / len(rows),
+        "greedy_tokens_per_problem": sum(g_len) / len(rows),
+        "sample_tokens_per_sample": sum(s_len) / len(s_len),
+        "greedy_seconds": t_greedy, "sample_seconds": t_samples,
+        "greedy_truncated": sum(r.finish_reason == "length" for r in greedy) / len(rows),
+        "behaviour_greedy": task.behaviour_counts([r.text for r in greedy]),
+        "behaviour_samples": task.behaviour_counts([r.text for r in samples]),
+        "greedy_reasons": dict(collections.Counter(v.reason for v in g_verdicts).most_common()),
+        "examples": [{"prompt": r["prompt"], "greedy": g.text, "right": ok}
+                     for r, g, ok in list(zip(rows, greedy, g_right))[:4]],
+    })
+    return out
+
+
+# ----------------------------------------------------------------------------- GRPO run
+def grpo_curves(run_dir: Path) -> dict:
+    """Held-out accuracy, lengths, tokens and time per step from the GRPO run's metrics.jsonl."""
+    rows = read_jsonl(run_dir / "metrics.jsonl")
+    cfg = read_yaml(run_dir / "config.yaml").get("grpo", {})
+    P, K = cfg.get("prompts_per_step", 0), cfg.get("group_size", 0)
+    train = [r for r in rows if "reward/mean" in r]
+    evals = {}
+    for r in rows:
+        if "eval/accuracy" in r:
+            evals[r["step"]] = r  # the last row of a step wins (the final eval repeats max_steps)
+    tokens = 0.0
+    cum_tokens, cum_time = [], []
+    t = 0.0
+    for r in train:
+        rounds = r.get("resample/rounds", 1.0)
+        tokens += P * K * rounds * r["completion/length"]
+        t += r.get("time/step", 0.0)
+        cum_tokens.append(tokens)
+        cum_time.append(t)
+    return {
+        "prompts_per_step": P, "group_size": K, "steps": [r["step"] for r in train],
+        "reward": [r["reward/mean"] for r in train],
+        "train_length": [r["completion/length"] for r in train],
+        "zero_var_frac": [r["zero_var_frac"] for r in train],
+        "entropy": [r.get("entropy") for r in train],
+        "cum_sampled_tokens": cum_tokens, "cum_step_seconds": cum_time,
+        "eval_steps": sorted(evals), "eval_accuracy": [evals[s]["eval/accuracy"] for s in sorted(evals)],
+        "eval_length": [evals[s].get("eval/length") for s in sorted(evals)],
+        "sampled_tokens": tokens, "sampled_sequences": sum(P * K * r.get("resample/rounds", 1.0) for r in train),
+        "trained_sequences": sum(r.get("rows/trained", 0.0) for r in train) * cfg.get("mu", 1),
+        "config": cfg,
+    }
+
+
+def rollout_behaviour(run_dir: Path) -> dict:
+    """Phrase frequencies and lengths of the saved training rollouts, per saved step."""
+    from posttrain.rollout import load_rollouts
+    from posttrain.tasks import math as task
+
+    steps, ver, cor, length = [], [], [], []
+    for path in sorted((run_dir / "rollouts").glob("step-*.jsonl")):
+        rollouts = load_rollouts(path)
+        texts = [r.text for r in rollouts]
+        b = task.behaviour_counts(texts)
+        steps.append(int(path.stem.split("-")[1]))
+        ver.append(b["frac_verification"])
+        cor.append(b["frac_self_correction"])
+        length.append(sum(len(r.completion_ids) for r in rollouts) / max(1, len(rollouts)))
+    return {"steps": steps, "frac_verification": ver, "frac_self_correction": cor, "length": length}
+
+
+def sft_cost(run_dir: Path, rows: list[dict], tokenizer_dir: Path) -> dict:
+    """SFT's training tokens: steps x batch x the mean tokens of a training row (prompt + solution + eos)."""
+    from posttrain.models import load_tokenizer
+
+    cfg = read_yaml(run_dir / "config.yaml").get("sft", {})
+    tok = load_tokenizer(tokenizer_dir)
+    sample = rows[:500]
+    mean_tokens = sum(len(tok(r["prompt"] + r["completion"])["input_ids"]) + 1 for r in sample) / max(1, len(sample))
+    steps, batch = cfg.get("max_steps", 0), cfg.get("batch_size", 0)
+    return {"steps": steps, "batch_size": batch, "tokens": steps * batch * mean_tokens,
+            "sequences": steps * batch, "mean_row_tokens": mean_tokens}
+
+
+# ----------------------------------------------------------------------------- analysis
+def interpolate_k(curve: list[float], target: float) -> float | None:
+    """Smallest (log-linearly interpolated) K at which a pass@K curve reaches `target`; None if never."""
+    if curve[0] >= target:
+        return 1.0
+    for k in range(1, len(curve)):
+        lo, hi = curve[k - 1], curve[k]
+        if hi >= target:
+            frac = (target - lo) / (hi - lo) if hi > lo else 1.0
+            return math.exp(math.log(k) + frac * (math.log(k + 1) - math.log(k)))
+    return None
+
+
+def compute_table(res: dict) -> dict:
+    """Compute spent per route, in generated tokens and seconds, and the break-even point."""
+    sft, grpo = res["eval"]["sft"], res["eval"]["grpo"]
+    g = res["grpo"]
+    sec = res["seconds"]
+    rows = res["eval_rows"]
+    per_sample_s = sft["sample_seconds"] / (rows * N_SAMPLES)
+    routes = []
+    for k in KS:
+        routes.append({"route": f"SFT, maj@{k}" if k > 1 else "SFT, 1 sample (T=1)",
+                       "accuracy": sft["maj_at_k"][k], "oracle_accuracy": sft["pass_at_k"][k],
+                       "train_seconds": sec["sft"], "train_tokens": res["sft_cost"]["tokens"],
+                       "inference_samples_per_problem": k,
+                       "inference_tokens_per_problem": k * sft["sample_tokens_per_sample"],
+                       "inference_seconds_per_problem": k * per_sample_s})
+    routes.insert(0, {"route": "SFT, greedy", "accuracy": sft["greedy_accuracy"], "oracle_accuracy": None,
+                      "train_seconds": sec["sft"], "train_tokens": res["sft_cost"]["tokens"],
+                      "inference_samples_per_problem": 1,
+                      "inference_tokens_per_problem": sft["greedy_tokens_per_problem"],
+                      "inference_seconds_per_problem": sft["greedy_seconds"] / rows})
+    routes.append({"route": "SFT + GRPO, greedy", "accuracy": grpo["greedy_accuracy"], "oracle_accuracy": None,
+                   "train_seconds": sec["sft"] + sec["grpo"], "train_tokens": res["sft_cost"]["tokens"],
+                   "grpo_sampled_tokens": g["sampled_tokens"], "grpo_sampled_sequences": g["sampled_sequences"],
+                   "inference_samples_per_problem": 1,
+                   "inference_tokens_per_problem": grpo["greedy_tokens_per_problem"],
+                   "inference_seconds_per_problem": grpo["greedy_seconds"] / rows})
+    for k in KS[1:]:
+        routes.append({"route": f"SFT + GRPO, maj@{k}", "accuracy": grpo["maj_at_k"][k],
+                       "oracle_accuracy": grpo["pass_at_k"][k], "train_seconds": sec["sft"] + sec["grpo"],
+                       "train_tokens": res["sft_cost"]["tokens"], "grpo_sampled_tokens": g["sampled_tokens"],
+                       "inference_samples_per_problem": k,
+                       "inference_tokens_per_problem": k * grpo["sample_tokens_per_sample"],
+                       "inference_seconds_per_problem": k * grpo["sample_seconds"] / (rows * N_SAMPLES)})
+    # Matched inference compute: how many SFT samples does the oracle / majority vote need to reach GRPO greedy?
+    k_oracle = interpolate_k(sft["pass_curve"], grpo["greedy_accuracy"])
+    best_maj = max(KS, key=lambda k: sft["maj_at_k"][k])
+    extra = None
+    if k_oracle is not None:
+        extra = k_oracle * sft["sample_tokens_per_sample"] - grpo["greedy_tokens_per_problem"]
+    return {
+        "routes": routes,
+        "sft_oracle_k_matching_grpo_greedy": k_oracle,
+        "sft_best_majority": {"k": best_maj, "accuracy": sft["maj_at_k"][best_maj]},
+        "grpo_training_tokens_sampled": g["sampled_tokens"],
+        "grpo_training_seconds": sec["grpo"],
+        "break_even_problems_tokens": (g["sampled_tokens"] / extra) if extra and extra > 0 else None,
+        "extra_inference_tokens_per_problem_for_sft_oracle": extra,
+    }
+
+
+# ----------------------------------------------------------------------------- plots
+def plots(res: dict, out: Path) -> dict[str, dict]:
+    """The PNGs; returns {file: the data plotted} (written into e7.json)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sft, grpo, g = res["eval"]["sft"], res["eval"]["grpo"], res["grpo"]
+    figs: dict[str, dict] = {}
+
+    # 1. held-out greedy accuracy over GRPO steps, with the no-RL baselines
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    ax.plot(g["eval_steps"], g["eval_accuracy"], "o-", color="tab:red", label="GRPO, greedy (held-out)")
+    lines = {"SFT greedy": (sft["greedy_accuracy"], "k", "-"),
+             "SFT maj@16": (sft["maj_at_k"][16], "tab:blue", "--"),
+             "SFT pass@4 (oracle)": (sft["pass_at_k"][4], "tab:green", ":"),
+             "SFT pass@16 (oracle)": (sft["pass_at_k"][16], "tab:green", "--")}
+    for label, (y, c, ls) in lines.items():
+        ax.axhline(y, color=c, ls=ls, lw=1, label=f"{label} {y:.2f}")
+    ax.set_xlabel("GRPO step")
+    ax.set_ylabel(f"held-out accuracy ({g.get('config', {}).get('eval_rows', '?')} problems during training)")
+    ax.set_ylim(0, 1)
+    ax.set_title("E7: held-out accuracy during GRPO vs sampling baselines without RL")
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(out / "e7_accuracy_curve.png", dpi=100)
+    plt.close(fig)
+    figs["e7_accuracy_curve.png"] = {"steps": g["eval_steps"], "grpo_greedy_accuracy": g["eval_accuracy"],
+                                     "baselines": {k: v[0] for k, v in lines.items()}}
+
+    # 2. accuracy against inference samples per problem
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    ks = list(range(1, N_SAMPLES + 1))
+    ax.plot(ks, sft["pass_curve"], "-", color="tab:green", label="SFT pass@K (oracle best-of-K)")
+    ax.plot(ks, grpo["pass_curve"], "-", color="tab:orange", label="GRPO pass@K (oracle best-of-K)")
+    ax.plot(KS, [sft["maj_at_k"][k] for k in KS], "s--", color="tab:blue", label="SFT maj@K")
+    ax.plot(KS, [grpo["maj_at_k"][k] for k in KS], "s--", color="tab:red", label="GRPO maj@K")
+    ax.plot([1], [sft["greedy_accuracy"]], "k^", ms=9, label="SFT greedy")
+    ax.plot([1], [grpo["greedy_accuracy"]], "r*", ms=12, label="GRPO greedy")
+    ax.set_xscale("log", base=2)
+    ax.set_xticks([1, 2, 4, 8, 16])
+    ax.set_xticklabels(["1", "2", "4", "8", "16"])
+    ax.set_xlabel(f"samples per problem at inference (T={SAMPLE_TEMPERATURE:g})")
+    ax.set_ylabel(f"held-out accuracy ({res['eval_rows']} problems)")
+    ax.set_ylim(0, 1)
+    ax.set_title("E7: inference-time compute vs RL")
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(out / "e7_inference_scaling.png", dpi=100)
+    plt.close(fig)
+    figs["e7_inference_scaling.png"] = {
+        "k": ks, "sft_pass_at_k": sft["pass_curve"], "grpo_pass_at_k": grpo["pass_curve"],
+        "maj_k": list(KS), "sft_maj_at_k": [sft["maj_at_k"][k] for k in KS],
+        "grpo_maj_at_k": [grpo["maj_at_k"][k] for k in KS],
+        "sft_greedy": sft["greedy_accuracy"], "grpo_greedy": grpo["greedy_accuracy"]}
+
+    # 3. response length over training
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    ax.plot(g["steps"], g["train_length"], "-", color="tab:purple", lw=1, label="training samples (T=1), mean")
+    ax.plot(g["eval_steps"], g["eval_length"], "o-", color="tab:red", label="held-out greedy, mean")
+    ax.set_xlabel("GRPO step")
+    ax.set_ylabel("completion length (tokens)")
+    ax.set_title("E7: response length over GRPO training")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "e7_length.png", dpi=100)
+    plt.close(fig)
+    figs["e7_length.png"] = {"steps": g["steps"], "train_length": g["train_length"],
+                             "eval_steps": g["eval_steps"], "eval_length": g["eval_length"]}
+
+    # 4. verification / self-correction phrases
+    b = res["behaviour_over_training"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    ax = axes[0]
+    if b["steps"]:
+        ax.plot(b["steps"], b["frac_verification"], "o-", color="tab:blue", label="'check' (verification)")
+        ax.plot(b["steps"], b["frac_self_correction"], "s-", color="tab:gray", label="self-correction words")
+    ax.set_xlabel("GRPO step")
+    ax.set_ylabel("fraction of training samples")
+    ax.set_title("phrases in GRPO's training samples")
+    ax.legend(fontsize=8)
+    ax = axes[1]
+    labels = ["greedy\nverification", "samples\nverification", "greedy\nself-corr.", "samples\nself-corr."]
+    before = [sft["behaviour_greedy"]["frac_verification"], sft["behaviour_samples"]["frac_verification"],
+              sft["behaviour_greedy"]["frac_self_correction"], sft["behaviour_samples"]["frac_self_correction"]]
+    after = [grpo["behaviour_greedy"]["frac_verification"], grpo["behaviour_samples"]["frac_verification"],
+             grpo["behaviour_greedy"]["frac_self_correction"], grpo["behaviour_samples"]["frac_self_correction"]]
+    x = range(len(labels))
+    ax.bar([i - 0.2 for i in x], before, 0.4, label="SFT", color="tab:gray")
+    ax.bar([i + 0.2 for i in x], after, 0.4, label="SFT + GRPO", color="tab:red")
+    ax.set_xticks(list(x))
+    ax.set_xticklabels(labels, fontsize=8)
+    ax.set_ylabel("fraction of held-out completions")
+    ax.set_title("before / after RL (held-out)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "e7_behaviour.png", dpi=100)
+    plt.close(fig)
+    figs["e7_behaviour.png"] = {"over_training": b, "labels": [l.replace("\n", " ") for l in labels],
+                                "sft": before, "grpo": after}
+
+    # 5. accuracy against total generated tokens for a workload of problems
+    c = res["compute"]
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for r in c["routes"]:
+        ax.scatter(r["inference_tokens_per_problem"], r["accuracy"], s=40,
+                   color="tab:red" if "GRPO" in r["route"] else "tab:blue")
+        ax.annotate(r["route"], (r["inference_tokens_per_problem"], r["accuracy"]), fontsize=7,
+                    xytext=(4, 3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("tokens generated per problem at inference (log)")
+    ax.set_ylabel("held-out accuracy (no oracle)")
+    ax.set_ylim(0, 1)
+    ax.set_title(f"E7: accuracy vs inference tokens (GRPO training sampled {c['grpo_training_tokens_sampled']:,.0f} tokens)",
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out / "e7_compute.png", dpi=100)
+    plt.close(fig)
+    figs["e7_compute.png"] = {"routes": c["routes"]}
+    return figs
+
+
+# ----------------------------------------------------------------------------- report
+def pct(x: float | None) -> str:
+    return "n/a" if x is None else f"{100 * x:.1f}%"
+
+
+def report_md(res: dict) -> str:
+    sft, grpo, g, c = res["eval"]["sft"], res["eval"]["grpo"], res["grpo"], res["compute"]
+    sec = res["seconds"]
+    gain = grpo["greedy_accuracy"] - sft["greedy_accuracy"]
+    L = []
+    L.append(f"# E7: GRPO vs best-of-K on tiny-math{' (quick smoke run)' if res['quick'] else ''}\n")
+    L.append(f"Runtime: {res['runtime_s'] / 60:.1f} min in all on this machine ({os.cpu_count()} cores, shared; "
+             f"torch threads per stage: {res['threads'] or 'default'}): SFT {sec['sft']:.0f} s, GRPO {sec['grpo']:.0f} s, "
+             f"baseline and final evaluations {sec['eval']:.0f} s" + (" (reused runs: " + ", ".join(res["reused"]) + ")"
+                                                                   if res["reused"] else "") + ".\n")
+    L.append(f"Command: `python scripts/reproduce_e7.py{' --quick' if res['quick'] else ''}"
+             f"{''.join(' --set ' + s for s in res['overrides'])}`. Model: `{res['preset']}` preset, "
+             f"{res['parameters'] / 1e6:.2f}M parameters, trained from scratch. Held-out: {res['eval_rows']} problems "
+             f"(number tuples and template pairings never seen in training). Samples: {N_SAMPLES} per problem at "
+             f"T={SAMPLE_TEMPERATURE:g}; every K is estimated from them.\n")
+    L.append("## Result\n")
+    L.append(f"- SFT greedy accuracy **{pct(sft['greedy_accuracy'])}**; after GRPO **{pct(grpo['greedy_accuracy'])}** "
+             f"({'+' if gain >= 0 else ''}{100 * gain:.1f} points) after {len(g['steps'])} GRPO steps "
+             f"({sec['grpo'] / 60:.1f} min).")
+    if c["sft_oracle_k_matching_grpo_greedy"] is not None:
+        L.append(f"- The SFT model needs about **K = {c['sft_oracle_k_matching_grpo_greedy']:.1f}** samples with a "
+                 f"verifier oracle picking a right one to match one greedy answer of the GRPO model.")
+    else:
+        L.append(f"- Even an oracle best-of-{N_SAMPLES} of the SFT model ({pct(sft['pass_at_k'][16])}) stays below "
+                 f"one greedy answer of the GRPO model.")
+    L.append(f"- Without an oracle, the SFT model's best majority vote is maj@{c['sft_best_majority']['k']} = "
+             f"{pct(c['sft_best_majority']['accuracy'])}, at {c['sft_best_majority']['k']} samples per problem.")
+    if c["break_even_problems_tokens"]:
+        L.append(f"- Compute: GRPO training sampled {g['sampled_tokens']:,.0f} tokens "
+                 f"({g['sampled_sequences']:,.0f} completions); matching it by oracle best-of-K costs "
+                 f"{c['extra_inference_tokens_per_problem_for_sft_oracle']:.0f} extra tokens per problem, so RL is "
+                 f"cheaper in generated tokens after about {c['break_even_problems_tokens']:,.0f} problems.")
+    L.append("")
+    L.append("## Accuracy at matched inference compute (held-out)\n")
+    L.append("| samples / problem | SFT | SFT + GRPO | SFT oracle pass@K | GRPO oracle pass@K |")
+    L.append("|---|---|---|---|---|")
+    L.append(f"| 1 (greedy) | {pct(sft['greedy_accuracy'])} | {pct(grpo['greedy_accuracy'])} | | |")
+    for k in KS:
+        label = f"{k} (T={SAMPLE_TEMPERATURE:g}, " + ("one sample)" if k == 1 else "majority vote)")
+        L.append(f"| {label} | {pct(sft['maj_at_k'][k])} | {pct(grpo['maj_at_k'][k])} | {pct(sft['pass_at_k'][k])} | "
+                 f"{pct(grpo['pass_at_k'][k])} |")
+    L.append("")
+    L.append("pass@K needs the reference answer at inference time (a verifier oracle); majority vote does not. "
+             f"Fraction of problems with some right answer among {N_SAMPLES} samples: SFT "
+             f"{pct(sft['frac_some_right_of_16'])}, GRPO {pct(grpo['frac_some_right_of_16'])}; all {N_SAMPLES} right: "
+             f"SFT {pct(sft['frac_all_right_of_16'])}, GRPO {pct(grpo['frac_all_right_of_16'])}. Problems whose groups of 8 "
+             f"are mixed (GRPO's learning signal): SFT {pct(sft['frac_mixed_groups_of_8'])}, GRPO "
+             f"{pct(grpo['frac_mixed_groups_of_8'])}.\n")
+    L.append("![accuracy curve](e7_accuracy_curve.png)\n")
+    L.append("![inference scaling](e7_inference_scaling.png)\n")
+    L.append("## Compute\n")
+    L.append("| route | accuracy | training (s) | training tokens | inference samples / problem | inference tokens / problem | inference s / problem |")
+    L.append("|---|---|---|---|---|---|---|")
+    for r in c["routes"]:
+        tt = f"{r['train_tokens']:,.0f} SFT" + (f" + {r['grpo_sampled_tokens']:,.0f} GRPO-sampled"
+                                                  if r.get("grpo_sampled_tokens") else "")
+        L.append(f"| {r['route']} | {pct(r['accuracy'])} | {r['train_seconds']:.0f} | {tt} | "
+                 f"{r['inference_samples_per_problem']} | {r['inference_tokens_per_problem']:.0f} | "
+                 f"{r['inference_seconds_per_problem'] * 1000:.1f} ms |")
+    L.append("")
+    L.append(f"SFT processed {res['sft_cost']['sequences']:,} training sequences ({res['sft_cost']['steps']} steps x "
+             f"batch {res['sft_cost']['batch_size']}, {res['sft_cost']['mean_row_tokens']:.0f} tokens each). GRPO sampled "
+             f"{g['sampled_sequences']:,.0f} completions ({g['prompts_per_step']} prompts x {g['group_size']} per step) "
+             f"and trained on {g['trained_sequences']:,.0f} sequences (zero-variance groups are skipped). Inference "
+             "seconds are measured in this script's batched generation (all problems at once), single process.\n")
+    L.append("![compute](e7_compute.png)\n")
+    L.append("## Behaviour: response length and verification / self-correction phrases\n")
+    first_len = g["train_length"][0] if g["train_length"] else float("nan")
+    last_len = sum(g["train_length"][-5:]) / max(1, len(g["train_length"][-5:])) if g["train_length"] else float("nan")
+    L.append(f"- Training samples: {first_len:.1f} tokens at the first step, {last_len:.1f} over the last 5 steps. "
+             f"Held-out greedy: SFT {sft['greedy_tokens_per_problem']:.1f} tokens, GRPO "
+             f"{grpo['greedy_tokens_per_problem']:.1f}; truncated at the budget: SFT {pct(sft['greedy_truncated'])}, "
+             f"GRPO {pct(grpo['greedy_truncated'])}.")
+    for who, m in (("SFT", sft), ("SFT + GRPO", grpo)):
+        bg, bs = m["behaviour_greedy"], m["behaviour_samples"]
+        L.append(f"- {who}: 'check' in {pct(bg['frac_verification'])} of greedy answers and "
+                 f"{pct(bs['frac_verification'])} of samples; self-correction words in "
+                 f"{pct(bg['frac_self_correction'])} / {pct(bs['frac_self_correction'])}.")
+    b = res["behaviour_over_training"]
+    if b["steps"]:
+        L.append(f"- In GRPO's saved training rollouts (steps {b['steps'][0]}..{b['steps'][-1]}): 'check' in "
+                 f"{pct(b['frac_verification'][0])} -> {pct(b['frac_verification'][-1])} of samples; self-correction "
+                 f"words {pct(b['frac_self_correction'][0])} -> {pct(b['frac_self_correction'][-1])}.")
+    L.append("")
+    L.append("What these phrases are: the SFT data has an optional line `Check: 66+19=85` (the inverse of the last "
+             "operation, numbers copied from the line above) in 25% of training solutions and never in held-out "
+             "solutions; it cannot change the answer, so a change in its frequency under RL is drift or a side effect "
+             "of length, not learned verification. No self-correction word is in the SFT data: a tiny model trained "
+             "from scratch has no such words to discover, unlike the pretrained models in which R1-style 'aha' "
+             "behaviour was reported.\n")
+    L.append("![length](e7_length.png)\n")
+    L.append("![behaviour](e7_behaviour.png)\n")
+    L.append("## Why held-out greedy answers fail\n")
+    for who, m in (("SFT", sft), ("SFT + GRPO", grpo)):
+        L.append(f"- {who}: " + ", ".join(f"{k} {v}" for k, v in m["greedy_reasons"].items()))
+    L.append("")
+    L.append("## Examples (held-out, greedy)\n")
+    for who, m in (("SFT", sft), ("SFT + GRPO", grpo)):
+        ex = m["examples"][0]
+        L.append(f"{who} ({'right' if ex['right'] else 'wrong'}):\n\n```\n{ex['prompt']}{ex['greedy']}\n```\n")
+    L.append("## Settings\n")
+    L.append(f"GRPO config (resolved): `{json.dumps({k: v for k, v in g['config'].items() if k in ('prompts_per_step', 'group_size', 'max_steps', 'lr', 'beta', 'estimator', 'std_scale', 'aggregation', 'zero_variance', 'mu', 'max_new_tokens', 'temperature', 'clip_eps', 'clip_eps_high')})}`. "
+             f"Run directories: `{res['runs_dir']}`. Every number above and every plotted series is in `e7.json`.\n")
+    return "\n".join(L)
+
+
+# ----------------------------------------------------------------------------- main
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="a smoke run: short SFT and GRPO, 40 held-out problems")
+    ap.add_argument("--out", type=Path, default=None, help="output directory (default runs/e7 or runs/e7-quick)")
+    ap.add_argument("--threads", type=int, default=0, help="torch threads per stage and here (0: torch's default)")
+    ap.add_argument("--eval-rows", type=int, default=None, help="held-out problems for the baselines (default 200; quick 40)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.KEY=VALUE",
+                    help="config override passed to both stages, e.g. grpo.max_steps=100 (repeatable)")
+    ap.add_argument("--fresh", action="store_true", help="redo the SFT and GRPO runs even when they exist in --out")
+    args = ap.parse_args(argv)
+    for o in args.overrides:
+        if "=" not in o or "." not in o.split("=", 1)[0]:
+            raise SystemExit(f"reproduce_e7: --set {o!r} must look like stage.key=value (e.g. grpo.max_steps=100)")
+    out = (args.out or ROOT / "runs" / ("e7-quick" if args.quick else "e7")).resolve()
+    if args.fresh and out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    import transformers
+
+    transformers.utils.logging.set_verbosity_error()
+    transformers.utils.logging.disable_progress_bar()
+
+    from posttrain.cli import STAGES
+    from posttrain.config import resolve
+    from posttrain.models import count_parameters, load_model
+    from posttrain.tasks import load_split
+    from verifiers.runner import VerifierPool
+
+    t_all = time.time()
+    overrides = (QUICK if args.quick else []) + args.overrides
+    runs = out / "runs"
+    run_root = runs / RECIPE
+    timing_file = out / "seconds.json"
+    seconds = json.loads(timing_file.read_text()) if timing_file.is_file() else {}
+    reused = []
+
+    # 1. SFT
+    if (run_root / "sft" / "final").is_dir() and "sft" in seconds:
+        print(f"[e7] reusing the SFT model in {run_root / 'sft'}")
+        reused.append("sft")
+    else:
+        seconds["sft"] = posttrain("sft", runs, args.threads, out / "logs" / "sft.log", overrides)
+        seconds.pop("grpo", None)  # a new SFT model invalidates any GRPO run on the old one
+        shutil.rmtree(run_root / "grpo", ignore_errors=True)
+        timing_file.write_text(json.dumps(seconds))
+
+    res_eval = resolve(RECIPE, "grpo", STAGES["grpo"].load()[0], [f"run.output_dir={runs}", *overrides])
+    n_rows = args.eval_rows or (40 if args.quick else 200)
+    rows = load_split(res_eval.task, "eval")
+    if len(rows) < n_rows:
+        res_eval.task.n_eval = n_rows
+        rows = load_split(res_eval.task, "eval")
+    rows = rows[:n_rows]
+    max_new = res_eval.stage_cfg.max_new_tokens
+    pool = VerifierPool(workers=1)
+    t_eval = 0.0
+    try:
+        # 2. baselines without RL
+        t0 = time.time()
+        sft_eval = evaluate_model(run_root / "sft" / "final", rows, max_new, pool)
+        t_eval += time.time() - t0
+        print(f"[e7] SFT: greedy {sft_eval['greedy_accuracy']:.3f}, pass@K {sft_eval['pass_at_k']}, "
+              f"maj@K {sft_eval['maj_at_k']} ({time.time() - t0:.0f}s)", flush=True)
+
+        # 3. GRPO
+        grpo_dir = run_root / "grpo"
+        if (grpo_dir / "final").is_dir() and "grpo" in seconds:
+            print(f"[e7] reusing the GRPO run in {grpo_dir}")
+            reused.append("grpo")
+        else:
+            max_steps = res_eval.stage_cfg.max_steps
+            every = max(1, max_steps // 10)
+            seconds["grpo"] = posttrain("grpo", runs, args.threads, out / "logs" / "grpo.log",
+                                        overrides + [f"grpo.save_rollouts_every={every}"])
+            timing_file.write_text(json.dumps(seconds))
+
+        # 4. the GRPO model, behaviour, compute
+        t0 = time.time()
+        grpo_eval = evaluate_model(grpo_dir / "final", rows, max_new, pool)
+        t_eval += time.time() - t0
+        print(f"[e7] GRPO: greedy {grpo_eval['greedy_accuracy']:.3f}, pass@K {grpo_eval['pass_at_k']}, "
+              f"maj@K {grpo_eval['maj_at_k']} ({time.time() - t0:.0f}s)", flush=True)
+    finally:
+        pool.close()
+
+    res = {
+        "quick": args.quick, "overrides": args.overrides, "threads": args.threads, "eval_rows": len(rows),
+        "preset": res_eval.model.path, "parameters": count_parameters(load_model(run_root / "sft" / "final")),
+        "runs_dir": str(runs), "reused": reused,
+        "seconds": {"sft": seconds["sft"], "grpo": seconds["grpo"], "eval": t_eval},
+        "eval": {"sft": sft_eval, "grpo": grpo_eval},
+        "grpo": grpo_curves(grpo_dir),
+        "behaviour_over_training": rollout_behaviour(grpo_dir),
+        "sft_cost": sft_cost(run_root / "sft", load_split(res_eval.task, "train"), run_root / "sft" / "final"),
+        "grpo_eval_json": json.loads((grpo_dir / "eval.json").read_text()) if (grpo_dir / "eval.json").is_file() else {},
+    }
+    res["compute"] = compute_table(res)
+    res["figures"] = plots(res, out)
+    res["runtime_s"] = time.time() - t_all + sum(seconds[k] for k in ("sft", "grpo") if k in reused)
+    (out / "e7.json").write_text(json.dumps(res, indent=2, default=str))
+    (out / "report.md").write_text(report_md(res))
+    print(f"[e7] SFT greedy {sft_eval['greedy_accuracy']:.3f} -> GRPO greedy {grpo_eval['greedy_accuracy']:.3f}; "
+          f"report {out / 'report.md'} ({res['runtime_s'] / 60:.1f} min)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
