@@ -394,3 +394,50 @@ def test_resume_equals_an_uninterrupted_run(world, tmp_path, monkeypatch):
     for rf, rc in zip(mf, mc):  # the same rollouts, rewards, KL coefficients and losses
         for k in ("rollout/score_raw", "kl_coef", "policy/loss", "value/loss"):
             assert rf[k] == pytest.approx(rc[k], rel=1e-5, abs=1e-7), k
+
+
+def test_lora_ppo_learns_with_no_reference_copy_and_saves_a_merged_model(world, tmp_path, vowels, capsys,
+                                                                          monkeypatch):
+    """lora.enabled=true: the policy and the value model train adapters; the reference is the policy with its
+    adapters off (load_model is called once: the policy; no reference copy is loaded), final/ is merged.
+
+    The model: the random tiny model with its final norm weight set to 4. With the HF init (tied embeddings,
+    std 0.02) no hidden state can give any token more than ~3% probability, and adapters on the transformer
+    layers cannot touch the embeddings or the final norm, so they cannot move a random model's outputs far
+    (measured: the best reachable vowel fraction is 0.17, and no_eos stays >= 0.7); full fine-tuning escapes
+    by growing the embeddings. x4 gives the output layer the range of a trained model."""
+    import posttrain.models as models
+
+    sft = tmp_path / "lora" / "tiny-summarize" / "sft" / "final"
+    model, tok = models.load_model(world["sft"]), models.load_tokenizer(world["sft"])
+    with torch.no_grad():
+        model.model.norm.weight.fill_(4.0)
+    models.save_model(model, tok, sft)
+    loads = []
+    real_load = models.load_model
+    monkeypatch.setattr(models, "load_model", lambda *a, **k: loads.append(a[0]) or real_load(*a, **k))
+    out = tmp_path / "lora"
+    assert main(_args(world, out, f"task.train_file={world['short']}", "reward=rm", f"reward_model={world['rm']}",
+                      "max_steps=8", "rollout_batch_size=32", "minibatch_size=16", "ppo_epochs=4",
+                      "max_new_tokens=12", "lr=1e-2", "kl_coef=0.01", "eval_every=4", "final_eval_rows=8",
+                      "lora.enabled=true")) == 0
+    text = capsys.readouterr().out
+    assert "LoRA r=16" in text and "(policy)" in text and "(value model)" in text
+    assert len(loads) == 1, loads  # the policy only: reference = adapters off
+    m = [r for r in _metrics(out) if "rollout/score" in r]
+    # The shaped score PPO maximises: vowel fraction - 1 for each completion that never ends (detail 3).
+    # Measured (seeds 0, 1, 2): -0.80 -> 0.11, 0.07, 0.09; completions without EOS 100% -> 0-6%.
+    first, last = m[0]["rollout/score"], sum(r["rollout/score"] for r in m[-2:]) / 2
+    assert last > first + 0.5, [r["rollout/score"] for r in m]
+    assert m[-1]["rollout/no_eos"] < 0.3, [r["rollout/no_eos"] for r in m]
+    assert all(r["rollout/logprob_gap"] < 1e-3 for r in m)  # the engine's LoRA path == the policy's forward
+    # the reference is the base: KL is 0 before the first update and grows once the adapters moved
+    assert m[0]["rollout/kl"] == 0.0 and m[-1]["rollout/kl"] > 0.1, [r["rollout/kl"] for r in m]
+    assert "gold win-rate of the PPO model against the SFT model" in text
+    final = out / "tiny-summarize" / "ppo" / "final"
+    assert not (final / "adapter_config.json").exists()
+    merged, base = real_load(final), real_load(sft)
+    base_w = base.state_dict()
+    diff = {n: float((w - base_w[n]).abs().max()) for n, w in merged.state_dict().items()}
+    assert diff["model.embed_tokens.weight"] == 0.0  # not adapted: untouched
+    assert diff["model.layers.0.self_attn.q_proj.weight"] > 0  # adapted: base + B @ A merged in
