@@ -477,7 +477,7 @@ def _train(res: Resolved, cfg: GRPOConfig, verifier, pool, problems: list[Proble
            rm_dir: Path | None, sft_dir: Path) -> Path:
     import json
 
-    from posttrain.models import load_model, load_tokenizer, save_model
+    from posttrain.models import load_model, load_tokenizer, maybe_lora, reference_view, save_model
     from posttrain.rollout import SamplingParams, collate_rollouts, generate, save_rollouts
     from posttrain.scoring import RewardModelScorer, ScoreResult, VerifierScorer, WeightedScorer
     from verifiers.runner import VerifierError
@@ -492,9 +492,12 @@ def _train(res: Resolved, cfg: GRPOConfig, verifier, pool, problems: list[Proble
     accelerator.wait_for_everyone()
 
     tokenizer = load_tokenizer(sft_dir)
-    model = load_model(sft_dir, device=accelerator.device)
-    # beta = 0: no reference model is loaded at all
-    ref_model = load_model(sft_dir, device=accelerator.device).eval().requires_grad_(False) if cfg.beta > 0 else None
+    model = maybe_lora(res, load_model(sft_dir, device=accelerator.device), say)  # LoRA: adapters start at 0
+    # beta = 0: no reference model at all; LoRA: the policy with its adapters off (no copy of the weights)
+    ref_model = None
+    if cfg.beta > 0:
+        ref_model = reference_view(model) if res.use_lora else \
+            load_model(sft_dir, device=accelerator.device).eval().requires_grad_(False)
 
     # Prompts tokenized once (the engine takes ids); prompt + max_new_tokens > max_length: dropped with a count.
     def tokenize(ps: list[Problem], what: str) -> list[Problem]:

@@ -326,3 +326,24 @@ def test_recipe_runs_from_nothing(recipe, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "running `posttrain sft" in text and "held-out greedy accuracy on 8 problems: SFT" in text
     assert (out / recipe / "grpo" / "final" / "model.safetensors").is_file()
+
+
+def test_lora_grpo_learns_with_the_reference_as_adapters_off(sft_model, tmp_path, monkeypatch):
+    """lora.enabled=true with beta > 0: only the policy is loaded (reference = adapters off, no copy), the
+    reward rises, KL to the reference is logged, and final/ is a merged plain model."""
+    import posttrain.models as models
+
+    calls = []
+    real = models.load_model
+    monkeypatch.setattr(models, "load_model", lambda *a, **k: calls.append(a[0]) or real(*a, **k))
+    out = tmp_path / "lora"
+    assert main(_args(sft_model, out, _verifier("digits"), "max_steps=30", "group_size=8", "final_eval_rows=0",
+                      "eval_rows=0", "beta=0.01", "lr=1e-2", "lora.enabled=true", "lora.r=16")) == 0
+    assert len(calls) == 1, calls
+    steps = _steps(out)
+    r = [x["reward/mean"] for x in steps]
+    first, last = sum(r[:5]) / 5, sum(r[-5:]) / 5
+    assert last > first + 0.1, (first, last)
+    assert steps[0]["kl"] < 1e-4 < steps[-1]["kl"]  # adapters start at 0: policy == reference at step 1
+    final = out / "tiny-countdown" / "grpo" / "final"
+    assert (final / "model.safetensors").is_file() and not (final / "adapter_config.json").exists()
