@@ -203,9 +203,15 @@ def recipes_dir() -> Path:
     src = Path(__file__).resolve().parent.parent / "recipes"
     if src.is_dir() and any(src.glob("*.yaml")):
         return src
-    from importlib.resources import files
+    # Installed: `posttrain.recipes` is a package of data files without an __init__.py (a namespace
+    # package), so its directory is read from __path__ (importlib.resources.files would give a
+    # MultiplexedPath, not a filesystem path).
+    import posttrain.recipes as shipped
 
-    return Path(str(files("posttrain.recipes")))
+    for d in getattr(shipped, "__path__", []):
+        if any(Path(d).glob("*.yaml")):
+            return Path(d)
+    raise FileNotFoundError(f"no recipes found next to posttrain ({src}) nor in {list(shipped.__path__)}")
 
 
 def list_recipes() -> list[tuple[str, str]]:

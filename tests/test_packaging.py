@@ -25,3 +25,16 @@ def test_wheel_contains_every_package_and_recipe(tmp_path):
     for recipe in (ROOT / "recipes").glob("*.yaml"):
         assert f"posttrain/recipes/{recipe.name}" in names
     assert any(n.endswith("entry_points.txt") and "posttrain" in n for n in names)
+
+    # The installed package finds its recipes and launch configs from anywhere (not only a checkout).
+    site = tmp_path / "site"
+    zipfile.ZipFile(wheel).extractall(site)
+    for launch in (ROOT / "recipes" / "launch").glob("*.yaml"):
+        assert f"posttrain/recipes/launch/{launch.name}" in names
+    code = ("from posttrain.config import list_recipes, recipes_dir; import sys; "
+            "print(recipes_dir()); print(sorted(n for n, _ in list_recipes()))")
+    got = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                         env={"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"})
+    assert got.returncode == 0, got.stderr
+    assert str(site) in got.stdout.splitlines()[0]
+    assert "tiny-summarize" in got.stdout and "tiny-math" in got.stdout
