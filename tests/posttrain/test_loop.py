@@ -52,6 +52,9 @@ class _Acc:  # the subset of Accelerator used by optimizer_step / Checkpointer
     def unwrap_model(self, m):
         return m
 
+    def get_state_dict(self, m):
+        return m.state_dict()
+
     def wait_for_everyone(self):
         pass
 
