@@ -213,7 +213,7 @@ def test_evaluate_hand_built():
 
 def test_task_table_and_no_torch():
     assert get_task("tiny-summarize") is S
-    with pytest.raises(ValueError, match="unknown task 'nope'; known tasks: tiny-summarize"):
+    with pytest.raises(ValueError, match="unknown task 'nope'; known tasks: .*tiny-summarize"):
         get_task("nope")
     tree = ast.parse(open(S.__file__).read())
     imported = {alias.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
