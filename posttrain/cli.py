@@ -81,10 +81,10 @@ def train(res: Resolved, ensure: Callable[[str], Path]) -> Path:
     rows = tasks.load_split(res.task, "eval")[: cfg.rows]
     model_dir = Path(cfg.model) if cfg.model else ensure("sft")
     ref_dir = Path(cfg.reference) if cfg.reference else ensure("base")
-    tok = load_tokenizer(model_dir)
-    model = load_model(model_dir)
-    ref_tok = load_tokenizer(ref_dir)
-    ref = load_model(ref_dir)
+    tok = load_tokenizer(model_dir, res.model)
+    model = load_model(model_dir, res.model.dtype)
+    ref_tok = load_tokenizer(ref_dir, res.model)
+    ref = load_model(ref_dir, res.model.dtype)
     print(f"[eval] model {model_dir} vs reference {ref_dir} on {len(rows)} held-out prompts of {res.task.name}")
     m = evaluation.evaluate_model(res.task.name, model, tok, rows, max_new_tokens=cfg.max_new_tokens)
     r = evaluation.evaluate_model(res.task.name, ref, ref_tok, rows, max_new_tokens=cfg.max_new_tokens)
@@ -225,6 +225,11 @@ def main(argv: list[str] | None = None) -> int:
         args = p.parse_args(rest)
         res = resolve(args.recipe, cmd, cfg_cls, args.overrides)
         check_stage_sections(res, {name: st.load()[0] for name, st in STAGES.items() if name in res.raw_recipe})
+        from dataclasses import asdict
+
+        from posttrain.rollout import configure
+
+        configure(**asdict(res.rollout))  # every stage of this command generates through it (vllm: checked here)
         _quiet_libraries()
         run(res, lambda name: ensure_stage(res, name))
         return 0

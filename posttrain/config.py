@@ -1,7 +1,7 @@
 """Typed configs, recipes and strict merging.
 
 Precedence: dataclass defaults < recipe YAML < `key=value` on the command line.
-A recipe has shared sections (`task:`, `model:`, `run:`) and one section per stage
+A recipe has shared sections (`task:`, `model:`, `run:`, `lora:`, `rollout:`) and one section per stage
 (`sft:`, `rm:`, `dpo:`, `ppo:`, `grpo:`, `eval:`). An unknown key or a value of the
 wrong type is a `ConfigError` naming the key and the valid ones, raised before any
 model loads.
@@ -54,6 +54,14 @@ class ModelConfig:
     """Seed of the random init of a preset."""
     split_digits: bool = False
     """Tokenizer built from scratch: every digit its own token (arithmetic tasks such as tiny-math)."""
+    chat_template: Literal["auto", "on", "off"] = "auto"
+    """Prompts through the tokenizer's chat template: auto (when it has one), on (error if none), off (plain text)."""
+    system_prompt: str | None = None
+    """System message put before every prompt (needs a chat template); null: what the model's template says."""
+    dtype: Literal["float32", "bfloat16", "float16"] = "float32"
+    """Weights dtype of every model a stage loads; bfloat16 / float16 need a GPU (CPU has no native bf16)."""
+    gradient_checkpointing: bool = False
+    """Recompute activations in the backward pass of trained models (less memory, slower; same losses)."""
 
 
 @dataclass
@@ -83,7 +91,20 @@ class LoRAConfig:
     """Module names that get adapters (Llama-family names by default; "all-linear" is peft's shorthand)."""
 
 
-SHARED_SECTIONS: dict[str, type] = {"task": TaskConfig, "model": ModelConfig, "run": RunConfig, "lora": LoRAConfig}
+@dataclass
+class RolloutConfig:
+    backend: Literal["auto", "lean", "hf", "vllm"] = "auto"
+    """Generator of every stage: built-in engine (auto: lean forward if supported; lean; hf) or vllm (GPU)."""
+    vllm_gpu_memory_utilization: float = 0.3
+    """backend=vllm: fraction of the GPU's memory vLLM takes (weights + KV cache); the rest is left to training."""
+    vllm_dtype: str = "auto"
+    """backend=vllm: dtype of vLLM's copy of the policy (auto: vLLM's choice from the config; float16, bfloat16)."""
+    vllm_enforce_eager: bool = False
+    """backend=vllm: no CUDA graphs (faster start, less memory, slower decoding)."""
+
+
+SHARED_SECTIONS: dict[str, type] = {"task": TaskConfig, "model": ModelConfig, "run": RunConfig, "lora": LoRAConfig,
+                                    "rollout": RolloutConfig}
 STAGE_SECTIONS = ("sft", "prefs", "rm", "dpo", "ppo", "grpo", "eval")
 
 
@@ -110,6 +131,8 @@ def coerce(value: Any, tp: Any, key: str) -> Any:
     if tp is Any:
         return value
     if origin is Literal:
+        if isinstance(value, bool) and ("on" if value else "off") in typing.get_args(tp):
+            return "on" if value else "off"  # YAML 1.1 reads a bare on / off as a boolean
         if value in typing.get_args(tp):
             return value
         raise ConfigError(f"config key {key!r}: {value!r} is not {_type_name(tp)}")
@@ -287,6 +310,7 @@ class Resolved:
     stage_cfg: Any
     raw_recipe: dict[str, Any] = field(default_factory=dict)
     lora: LoRAConfig = field(default_factory=LoRAConfig)
+    rollout: RolloutConfig = field(default_factory=RolloutConfig)
 
     @property
     def use_lora(self) -> bool:
@@ -302,7 +326,8 @@ class Resolved:
 
     def to_dict(self) -> dict[str, Any]:
         return {"recipe": self.recipe, "stage": self.stage, "task": to_dict(self.task), "model": to_dict(self.model),
-                "run": to_dict(self.run), "lora": to_dict(self.lora), self.stage: to_dict(self.stage_cfg)}
+                "run": to_dict(self.run), "lora": to_dict(self.lora), "rollout": to_dict(self.rollout),
+                self.stage: to_dict(self.stage_cfg)}
 
     def for_stage(self, stage: str, stage_cls: type) -> "Resolved":
         """The config of another stage of the same recipe (used to build a prerequisite stage)."""
@@ -310,7 +335,7 @@ class Resolved:
         if stage in self.raw_recipe and self.raw_recipe[stage] is not None:
             merge_into(cfg, self.raw_recipe[stage], stage)
         lora = self.lora if self.lora.enabled and stage in self.lora.stages else LoRAConfig()
-        return Resolved(self.recipe, stage, self.task, self.model, self.run, cfg, self.raw_recipe, lora)
+        return Resolved(self.recipe, stage, self.task, self.model, self.run, cfg, self.raw_recipe, lora, self.rollout)
 
 
 def resolve(recipe: str, stage: str, stage_cls: type, overrides: list[str] | None = None) -> Resolved:
@@ -346,14 +371,21 @@ def resolve(recipe: str, stage: str, stage_cls: type, overrides: list[str] | Non
         else:
             valid = ", ".join(sorted(stage_fields))
             raise ConfigError(f"unknown config key {key!r} for stage {stage!r}; valid keys: {valid} "
-                              f"(or dotted: task.*, model.*, run.*, lora.*, {stage}.*)")
-    res = Resolved(name, stage, shared["task"], shared["model"], shared["run"], stage_cfg, raw, shared["lora"])
+                              f"(or dotted: task.*, model.*, run.*, lora.*, rollout.*, {stage}.*)")
+    res = Resolved(name, stage, shared["task"], shared["model"], shared["run"], stage_cfg, raw, shared["lora"],
+                   shared["rollout"])
     unknown = sorted(set(res.lora.stages) - set(STAGE_SECTIONS))
     if unknown:
         raise ConfigError(f"config key 'lora.stages': unknown stage(s) {unknown}; stages: {', '.join(STAGE_SECTIONS)}")
     if res.lora.enabled and (res.lora.r < 1 or res.lora.alpha <= 0 or not 0 <= res.lora.dropout < 1):
         raise ConfigError(f"config keys lora.r / lora.alpha / lora.dropout: need r >= 1, alpha > 0, 0 <= dropout < 1 "
                           f"(got {res.lora.r}, {res.lora.alpha}, {res.lora.dropout})")
+    if res.model.dtype != "float32":
+        from posttrain.models import dtype_problem
+
+        problem = dtype_problem(res.model.dtype)
+        if problem:
+            raise ConfigError(problem)
     return res
 
 

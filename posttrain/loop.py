@@ -119,7 +119,7 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
     `loss_fn(micro_batch)` returns (loss, metrics) where the loss is already scaled to its
     share of the whole batch (e.g. summed token losses / tokens in the batch), so the
     accumulated gradient is that of the batch loss. Metrics are summed over micro-batches
-    when their name ends in `_sum`, else averaged.
+    when their name ends in `_sum`, maxed when it ends in `_max`, else averaged (over processes too).
     """
     model.train()
     totals: dict[str, float] = {}
@@ -136,7 +136,10 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
             accelerator.backward(loss)
         loss_total += loss.item()
         for k, v in metrics.items():
-            totals[k] = totals.get(k, 0.0) + float(v)
+            if k.endswith("_max"):
+                totals[k] = max(totals.get(k, -math.inf), float(v)) if v == v else totals.get(k, -math.inf)
+            else:
+                totals[k] = totals.get(k, 0.0) + float(v)
     grad_norm = float("nan")
     if max_grad_norm > 0:
         grad_norm = float(accelerator.clip_grad_norm_(model.parameters(), max_grad_norm))
@@ -147,16 +150,18 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
     scheduler.step()
     optimizer.zero_grad(set_to_none=True)
     n = len(micro_batches)
-    out = {k: (v if k.endswith("_sum") else v / n) for k, v in totals.items()}
+    out = {k: (v if k.endswith(("_sum", "_max")) else v / n) for k, v in totals.items()}
     out["loss"] = loss_total
     if accelerator.num_processes > 1:
         # The logged numbers describe the global batch: losses and means averaged over processes (each
-        # process's loss is its share scaled up, see loss_fn), `_sum` metrics summed.
+        # process's loss is its share scaled up, see loss_fn), `_sum` metrics summed, `_max` maxed.
         keys = sorted(out)
         t = torch.tensor([out[k] for k in keys], dtype=torch.float64, device=accelerator.device)
         mean = accelerator.reduce(t.clone(), reduction="mean")
-        total = accelerator.reduce(t, reduction="sum")
-        out = {k: float(total[i] if k.endswith("_sum") else mean[i]) for i, k in enumerate(keys)}
+        total = accelerator.reduce(t.clone(), reduction="sum")
+        top = accelerator.gather(t.unsqueeze(0)).max(0).values  # (W, k) -> (k,)
+        out = {k: float(total[i] if k.endswith("_sum") else top[i] if k.endswith("_max") else mean[i])
+               for i, k in enumerate(keys)}
     out.update(grad_norm=grad_norm, lr=scheduler.get_last_lr()[0])
     return out
 

@@ -5,7 +5,15 @@ init; the tokenizer is a byte-level BPE trained with `tokenizers` on the task's 
 corpus and wrapped as a `PreTrainedTokenizerFast` with pad and eos tokens. Both are
 saved with `save_pretrained` and load back with `AutoModelForCausalLM` / `AutoTokenizer`.
 
-CPU runs use fp32: this class of CPU has no native bf16 (about 100x slower).
+CPU runs use fp32: this class of CPU has no native bf16 (about 100x slower). `model.dtype`
+(float32 | bfloat16 | float16) sets the weights dtype of every model a stage loads with `load_model`;
+the half dtypes need a GPU (`dtype_problem`). With bfloat16 the trained weights and the optimizer run
+in bf16 (no fp32 master copy); for fp32 weights with bf16 compute keep float32 and launch with
+`accelerate launch --mixed_precision bf16`. Reward-model scoring (`posttrain.scoring`) stays fp32.
+
+A local model directory (`model.path`) is any causal LM `AutoModelForCausalLM` loads; its chat
+template is applied to prompts as `posttrain.chat` describes. `model.gradient_checkpointing`
+recomputes activations in the backward pass of the trained model (`maybe_lora`).
 
 Presets (parameter counts with the default 1024-token vocabulary, tied embeddings):
 - `tiny`  : d=128, 4 layers, 4 heads, MLP 512   -> ~1.2M parameters (tests, default recipes)
@@ -105,7 +113,11 @@ def is_model_dir(path: str | os.PathLike) -> bool:
     return p.is_dir() and (p / "config.json").is_file()
 
 
-def load_tokenizer(path: str | os.PathLike):
+def load_tokenizer(path: str | os.PathLike, model_cfg=None):
+    """The tokenizer of a local model directory, left-padding, pad = eos when it has no pad token.
+
+    `model_cfg` (a ModelConfig): apply its `chat_template` / `system_prompt` (see `posttrain.chat`);
+    None leaves the directory's chat template as it is (the "auto" behaviour)."""
     from transformers import AutoTokenizer
 
     p = Path(path)
@@ -118,25 +130,61 @@ def load_tokenizer(path: str | os.PathLike):
         # Common for real checkpoints (e.g. Llama): padding is masked anyway, so reuse eos.
         tok.pad_token = tok.eos_token
     tok.padding_side = "left"
+    if model_cfg is not None:
+        from posttrain import chat
+
+        chat.configure(tok, model_cfg.chat_template, model_cfg.system_prompt, str(p))
     return tok
 
 
-def load_model(path: str | os.PathLike, dtype: torch.dtype | None = None, device: str | torch.device = "cpu"):
-    """Load a causal LM from a local directory (never from a hub). fp32 on CPU by default."""
+DTYPES: dict[str, torch.dtype] = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
+
+
+def dtype_problem(name: str) -> str | None:
+    """Why weights in dtype `name` (a `model.dtype` value) cannot be used on this machine, or None."""
+    if name == "float32":
+        return None
+    from posttrain.loop import _has_accelerator_device
+
+    if _has_accelerator_device():
+        return None
+    return (f"model.dtype={name}: no GPU found, and this CPU has no native {name} (about 100x slower than "
+            "float32); use model.dtype=float32 on CPU")
+
+
+def resolve_dtype(dtype: str | torch.dtype | None, device: str | torch.device = "cpu") -> torch.dtype:
+    """A torch dtype from a `model.dtype` name (checked by `dtype_problem`) or a torch dtype; None: fp32 on
+    CPU, bf16 on an accelerator."""
+    if dtype is None:
+        return torch.float32 if torch.device(device).type == "cpu" else torch.bfloat16
+    if isinstance(dtype, torch.dtype):
+        return dtype
+    if dtype not in DTYPES:
+        raise ModelError(f"model.dtype {dtype!r}: choose one of {', '.join(DTYPES)}")
+    problem = dtype_problem(dtype)
+    if problem:
+        raise ModelError(problem)
+    return DTYPES[dtype]
+
+
+def load_model(path: str | os.PathLike, dtype: str | torch.dtype | None = None, device: str | torch.device = "cpu"):
+    """Load a causal LM from a local directory (never from a hub), its weights in `dtype` (a `model.dtype`
+    name or a torch dtype; None: fp32 on CPU, bf16 on an accelerator)."""
     from transformers import AutoModelForCausalLM
 
     p = Path(path)
     if not is_model_dir(p):
         what = "does not exist" if not p.exists() else "has no config.json (not a Hugging Face model directory)"
         raise ModelError(f"model path {str(p)!r} {what}; give a local Hugging Face model directory or a preset name ({', '.join(PRESETS)})")
-    if dtype is None:
-        dtype = torch.float32 if torch.device(device).type == "cpu" else torch.bfloat16
-    model = AutoModelForCausalLM.from_pretrained(str(p), dtype=dtype, local_files_only=True)
+    model = AutoModelForCausalLM.from_pretrained(str(p), dtype=resolve_dtype(dtype, device), local_files_only=True)
     return model.to(device)
 
 
 def maybe_lora(res, model, say=print, task_type: str = "CAUSAL_LM"):
-    """`apply_lora` when the resolved config asks for LoRA in this stage (`res.use_lora`), else `model`."""
+    """The model a stage trains, as the resolved config asks: gradient checkpointing when
+    `model.gradient_checkpointing`, then `apply_lora` when this stage uses LoRA (`res.use_lora`)."""
+    if res.model.gradient_checkpointing:
+        enable_gradient_checkpointing(model)
     if not res.use_lora:
         return model
     model = apply_lora(model, res.lora, task_type)
@@ -144,6 +192,22 @@ def maybe_lora(res, model, say=print, task_type: str = "CAUSAL_LM"):
     say(f"[{res.stage}] LoRA r={res.lora.r} alpha={res.lora.alpha} on {', '.join(res.lora.target_modules)}: "
         f"{trainable / 1e3:.1f}k trainable of {count_parameters(model) / 1e6:.2f}M parameters")
     return model
+
+
+def enable_gradient_checkpointing(model) -> None:
+    """Recompute each decoder layer's activations in the backward pass instead of keeping them.
+
+    Non-reentrant `torch.utils.checkpoint` (transformers' default), and the embedding output requires
+    grad (`enable_input_require_grads`) so gradients reach LoRA adapters behind frozen layers. Only in
+    training mode: the rollout engine's and the evaluations' forwards run in eval mode, unchanged."""
+    if not getattr(model, "supports_gradient_checkpointing", False):
+        raise ModelError(f"model.gradient_checkpointing: {type(model).__name__} does not support it; "
+                         "set model.gradient_checkpointing=false")
+    if hasattr(model, "activation_checkpointing_enable"):  # transformers 5: it also makes the inputs require grad
+        model.activation_checkpointing_enable({"use_reentrant": False})
+    else:  # older transformers (the name warns in 5)
+        model.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+        model.enable_input_require_grads()
 
 
 def apply_lora(model, lora_cfg, task_type: str = "CAUSAL_LM"):

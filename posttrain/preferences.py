@@ -53,6 +53,7 @@ from typing import Any, Callable, Literal, Sequence
 
 import torch
 
+from posttrain.chat import encode_prompts
 from posttrain.data import DataError
 
 PAIR_FIELDS = ("prompt", "chosen", "rejected")
@@ -312,7 +313,7 @@ def check_pairs(rows: list[dict], source: str, on_bad: Literal["error", "skip"],
     if tokenizer is None:
         return ok, [], bad
     eos = [tokenizer.eos_token_id] if append_eos else []
-    prompts = tokenizer([r["prompt"] for r in ok], add_special_tokens=True)["input_ids"]
+    prompts = encode_prompts(tokenizer, [r["prompt"] for r in ok])  # chat template, as everywhere (posttrain.chat)
     chosen = tokenizer([r["chosen"] for r in ok], add_special_tokens=False)["input_ids"]
     rejected = tokenizer([r["rejected"] for r in ok], add_special_tokens=False)["input_ids"]
     kept, pairs = [], []
@@ -472,8 +473,8 @@ def train(res, ensure) -> Path:
         sft_dir = ensure("sft")
         accelerator = loop.setup(cfg.seed, res.run.threads)
         say = print if accelerator.is_main_process else (lambda *a, **k: None)
-        tokenizer = load_tokenizer(sft_dir)
-        model = load_model(sft_dir, device=accelerator.device)
+        tokenizer = load_tokenizer(sft_dir, res.model)
+        model = load_model(sft_dir, res.model.dtype, device=accelerator.device)
         say(f"[prefs] sampling {cfg.samples_per_prompt} completions for {len(prompts)} training and "
             f"{len(eval_prompts)} held-out prompts from {sft_dir} (temperature {cfg.temperature})")
         common = dict(samples_per_prompt=cfg.samples_per_prompt, pairs_per_prompt=cfg.pairs_per_prompt,

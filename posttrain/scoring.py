@@ -125,8 +125,10 @@ def rm_appends_eos(tokenizer) -> bool:
 
 
 def rm_token_ids(tokenizer, prompts: Sequence[str], completions: Sequence[str]) -> list[list[int]]:
-    """prompt (special tokens) + completion (+ eos, `rm_appends_eos`), as the RM trainer builds them."""
-    p = tokenizer(list(prompts), add_special_tokens=True)["input_ids"]
+    """prompt (rendered, `posttrain.chat`) + completion (+ eos, `rm_appends_eos`), as the RM trainer builds them."""
+    from posttrain.chat import encode_prompts
+
+    p = encode_prompts(tokenizer, prompts)  # the chat template when the tokenizer has one (posttrain.chat)
     c = tokenizer(list(completions), add_special_tokens=False)["input_ids"]
     eos = [tokenizer.eos_token_id] if rm_appends_eos(tokenizer) else []
     return [a + b + eos for a, b in zip(p, c)]

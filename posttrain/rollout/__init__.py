@@ -50,20 +50,29 @@ Contract
   parameter's version counter moved, so an optimizer step between calls is always seen. Not
   thread-safe: one `generate` at a time per model. `tune_malloc` raises glibc's malloc thresholds
   once per process (see there). Measured speed: `scripts/bench.py`.
+- Backends. `generate(..., backend=None)` uses the process default that `configure` sets (the CLI sets it
+  from the recipe's `rollout:` section; "auto" otherwise). backend="vllm" (GPU, optional, import-guarded:
+  importing posttrain never imports vllm) samples through `vllm_backend.VLLMEngine`, which returns the same
+  records and pushes the policy's weights into vLLM whenever they changed since its last call (so after
+  every policy update); its log-probs, determinism and limits are in that module's docstring. Untested here.
 """
 from .backends import LeanLlama, lean_support
-from .engine import DEFAULT_MAX_BATCH_TOKENS, context_length, generate, select_backend, tune_malloc
+from .engine import (BACKENDS, DEFAULT_MAX_BATCH_TOKENS, configure, context_length, default_backend, generate,
+                     select_backend, tune_malloc)
 from .records import Rollout, RolloutBatch, collate_rollouts, load_rollouts, save_rollouts
 from .sampling import SamplingParams, row_uniforms
 
 __all__ = [
+    "BACKENDS",
     "DEFAULT_MAX_BATCH_TOKENS",
     "LeanLlama",
     "Rollout",
     "RolloutBatch",
     "SamplingParams",
     "collate_rollouts",
+    "configure",
     "context_length",
+    "default_backend",
     "generate",
     "lean_support",
     "load_rollouts",

@@ -11,6 +11,7 @@ from typing import Sequence
 
 import torch
 
+from ..chat import encode_prompts
 from ..logprobs import unwrap_model
 from .backends import HFForward, LeanLlama, lean_support
 from .records import Rollout
@@ -19,7 +20,29 @@ from .sampling import Sampler, SamplingParams, find_stop, row_uniforms, stop_can
 log = logging.getLogger(__name__)
 
 DEFAULT_MAX_BATCH_TOKENS = 16384
+BACKENDS = ("auto", "lean", "hf", "vllm")
 _malloc_tuned = False
+_defaults: dict = {"backend": "auto", "vllm": {}}
+
+
+def configure(backend: str = "auto", **vllm_options) -> None:
+    """Set the process-wide rollout backend that `generate(..., backend=None)` uses (every trainer, preference
+    sampling and evaluation call it so): the CLI calls this once per command with the recipe's `rollout:` section
+    (`configure(**asdict(res.rollout))`). `vllm_options`: the `vllm_*` fields of config.RolloutConfig.
+    backend=vllm checks here, before any model loads, that vLLM is importable and a CUDA GPU is visible."""
+    if backend not in BACKENDS:
+        raise ValueError(f"rollout backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if backend == "vllm":
+        from .vllm_backend import require_vllm
+
+        require_vllm()
+    _defaults["backend"] = backend
+    _defaults["vllm"] = {k.removeprefix("vllm_"): v for k, v in vllm_options.items()}
+
+
+def default_backend() -> str:
+    """The backend `generate` uses when none is given (see `configure`)."""
+    return _defaults["backend"]
 
 
 def tune_malloc() -> bool:
@@ -93,7 +116,7 @@ def _tokenize(tokenizer, prompts) -> tuple[list[list[int]], list[str | None]]:
     if str_pos:
         if tokenizer is None:
             raise ValueError("generate: prompts are strings but no tokenizer was given")
-        enc = tokenizer([prompts[i] for i in str_pos], add_special_tokens=True)["input_ids"]
+        enc = encode_prompts(tokenizer, [prompts[i] for i in str_pos])  # chat template when it has one
         for i, e in zip(str_pos, enc):
             ids[i], texts[i] = list(e), prompts[i]
     for i, p in enumerate(prompts):
@@ -120,17 +143,23 @@ def _eos_ids(model, tokenizer) -> list[int]:
 
 def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling: SamplingParams | None = None, *,
              prompt_keys: Sequence[int] | None = None, max_batch_tokens: int = DEFAULT_MAX_BATCH_TOKENS,
-             backend: str = "auto", **overrides) -> list[Rollout]:
+             backend: str | None = None, **overrides) -> list[Rollout]:
     """Sample `n` completions for each prompt; returns Rollouts ordered by (prompt_index, sample_index).
 
-    prompts: strings (tokenized with `add_special_tokens=True`) or lists of token ids, any lengths.
+    prompts: strings (rendered with the tokenizer's chat template when it has one, then tokenized:
+        `posttrain.chat.encode_prompts`) or lists of token ids, any lengths.
     sampling: a SamplingParams; keyword `overrides` replace its fields (`generate(m, t, ps, n=4, top_p=0.9)`).
     prompt_keys: one integer per prompt that seeds its randomness (default: its index). Pass stable ids
         (e.g. dataset indices) to get the same samples whatever else is in the call.
     max_batch_tokens: KV-cache budget; rows are split into micro-batches with
         rows * (longest prompt + max_new_tokens) <= max_batch_tokens (at least one row each).
-    backend: "auto" (lean path when supported, else HF forward), "lean" or "hf".
+    backend: "auto" (lean path when supported, else HF forward), "lean", "hf", or "vllm" (a vLLM engine per
+        model, `posttrain.rollout.vllm_backend`; weights pushed to it whenever they changed since its last call);
+        None: the process default set by `configure` ("auto" unless configured).
     """
+    backend = default_backend() if backend is None else backend
+    if backend not in BACKENDS:
+        raise ValueError(f"rollout backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     params = sampling or SamplingParams()
     if overrides:
         names = {f.name for f in dataclasses.fields(SamplingParams)}
@@ -171,6 +200,13 @@ def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling:
         if len(keys) != len(ids):
             raise ValueError(f"generate: prompt_keys has {len(keys)} entries for {len(ids)} prompts")
 
+    if backend == "vllm":
+        if params.stop and tokenizer is None:
+            raise ValueError("generate: stop strings need a tokenizer to decode completions; pass one or drop stop=")
+        from .vllm_backend import engine_for
+
+        return engine_for(model, tokenizer, **_defaults["vllm"]).generate(model, ids, texts, params, keys, limits,
+                                                                          tokenizer)
     fwd, why = select_backend(model, max(len(p) for p in ids) + params.max_new_tokens, backend)
     log.debug("rollout backend: %s", why)
     tune_malloc()

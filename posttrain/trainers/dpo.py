@@ -291,7 +291,7 @@ def train(res: Resolved, ensure) -> Path:
         raise ConfigError(f"dpo.online_labeler=gold needs a task with a gold preference; {res.task.name!r} has none")
     online_rows = tasks.load_split(res.task, "train") if cfg.online else []
     sft_dir = ensure("sft")
-    tokenizer = load_tokenizer(sft_dir)
+    tokenizer = load_tokenizer(sft_dir, res.model)
     pad_id = tokenizer.pad_token_id
     _, train_pairs, bad = preferences.check_pairs(train_rows, source, cfg.on_bad_rows, tokenizer, res.model.max_length)
     if bad.count:
@@ -321,7 +321,7 @@ def train(res: Resolved, ensure) -> Path:
     # The SFT model: first the reference (log-probs of every pair, the SFT baseline completions),
     # then, unchanged, the policy. No second copy unless reference=live.
     t0 = time.time()
-    model = maybe_lora(res, load_model(sft_dir, device=accelerator.device), say)  # LoRA: adapters start at 0
+    model = maybe_lora(res, load_model(sft_dir, res.model.dtype, device=accelerator.device), say)  # LoRA: adapters start at 0
     ref_train = ref_eval = None
     ref_model = None
     if cfg.reference == "precomputed":
@@ -338,7 +338,7 @@ def train(res: Resolved, ensure) -> Path:
             f"precomputed in {time.time() - t0:.1f}s; no reference model is kept in memory")
     else:
         ref_model = reference_view(model) if res.use_lora else \
-            load_model(sft_dir, device=accelerator.device).eval().requires_grad_(False)
+            load_model(sft_dir, res.model.dtype, device=accelerator.device).eval().requires_grad_(False)
     baseline = evaluation.complete(model, tokenizer, [r["prompt"] for r in gen_rows],
                                    max_new_tokens=cfg.max_new_tokens) if (gen_rows and main) else []
     proxy = RewardModelScorer(rm_dir, device=accelerator.device) if (rm_dir is not None and main) else None
@@ -352,7 +352,7 @@ def train(res: Resolved, ensure) -> Path:
             return ref_model
         if res.use_lora:
             return reference_view(accelerator.unwrap_model(model))
-        return load_model(sft_dir, device=accelerator.device).eval()
+        return load_model(sft_dir, res.model.dtype, device=accelerator.device).eval()
 
     optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
     scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)

@@ -3,6 +3,8 @@
 CPU:        posttrain grpo --recipe tiny-countdown        (from nothing: base model, SFT, GRPO; see the recipe)
             posttrain grpo --recipe tiny-code
 Multi-GPU:  accelerate launch --num_processes 8 -m posttrain grpo --recipe tiny-countdown model.path=/path/to/hf-model
+            (2 CPU processes: accelerate launch --config_file recipes/launch/cpu-2proc.yaml -m posttrain grpo
+            --recipe tiny-countdown run.threads=1; tested against one process in tests/posttrain/test_distributed.py)
 
 Reads top to bottom: resolve the reward (verifier spec, reward model) and check every problem has a
 reference, run the verifier on a few worked solutions (a broken verifier stops here, before any
@@ -50,8 +52,9 @@ Plumbing:
   `Rollout.policy_logprobs` (raw temperature-1 log-probs of the sampled tokens, equal to a recompute
   within 1e-4) at temperature 1; at another temperature the loss uses logits / temperature (as TRL and
   verl do) and pi_old is `Rollout.logprobs`, the log-probs of the distribution the engine sampled,
-  which is that same softmax(logits / T) when top_p = 1. With top_p < 1 (a truncated sampler) or
-  `old_logprobs=recompute` they come from one batched no-grad forward.
+  which is that same softmax(logits / T) when top_p = 1. With top_p < 1 (a truncated sampler),
+  `old_logprobs=recompute`, or rollout.backend=vllm (vLLM's log-probs come from its own forward; see
+  `posttrain.rollout.vllm_backend`) they come from one batched no-grad forward.
 - One optimisation "step" (the unit of max_steps, logging, eval and checkpoints) = one batch of
   rollouts = mu passes x `minibatches` optimizer updates (the LR schedule counts updates). Each pass
   shuffles the rows (seeded by step and pass); gradient accumulation over `micro_batch_size` rows
@@ -79,9 +82,27 @@ Deviations and limits:
   with beta > 0 those rows' KL term is dropped too. "keep" trains on them as GRPO as published does.
 - The k3 KL term's gradient is that of KL(pi_ref || pi), not KL(pi || pi_ref) (see
   `losses.kl_penalty`); GRPO as published has the same property.
-- Several processes (accelerate): each samples and scores its own shard of the step's prompts and
-  computes group (and batch) statistics on its shard; skip / resample can then leave the processes
-  with different numbers of rows. Multi-process GRPO has not been verified.
+
+Several processes (`accelerate launch`, data parallel). prompts_per_step is GLOBAL. Per process: process r
+takes positions r, r + W, ... of each round's global prompt batch (`loop.batch_indices`), samples all K
+completions of each of its prompts in one `generate` call (a group never spans processes; prompt keys are
+problem indices, so the samples are those one process draws, up to float differences between batch shapes)
+and scores them in its own verifier pool. Gathered: the scored groups, in global order, after every round,
+so every process holds the whole step batch and everything computed from it is global and identical
+everywhere: whether to resample (dynamic sampling stops when P informative groups exist over all
+processes), the zero-variance filter, the advantages (group statistics, std_scale=batch and REINFORCE++'s
+batch normalisation over the whole batch), the pass order and minibatches, the logged reward / pass /
+zero-variance / length metrics. The no-grad log-probs (reference; pi_old when recomputed) are computed on
+rows r, r + W, ... and gathered. Updates: of each minibatch, process r trains rows r, r + W, ..., its loss
+scaled to its share of the minibatch's aggregation (token_mean: loss tokens / the whole minibatch's; the
+sequence aggregations: rows / rows) times W, so DDP's gradient average is the one-process gradient (DAPO's
+token mean over the global minibatch); logged update metrics are the global minibatch's token means
+(ratio_max a max). A process short of rows in a minibatch runs a zero-weight copy of a real row so that
+every process makes the same all-reduces, and a non-finite loss on any process stops every process at the
+same step. Main process only: evaluation (SFT baseline, periodic, final), metrics.jsonl, saved rollouts,
+final/ and eval.json; checkpoints are written once (`loop.Checkpointer`); time/* are the main process's.
+Measured against one process in tests/posttrain/test_distributed.py (same samples, rewards and lengths
+exactly; losses and update metrics within float summation order).
 """
 from __future__ import annotations
 
@@ -397,20 +418,34 @@ def grpo_loss(cfg: GRPOConfig, model, mb: dict[str, torch.Tensor], scale: float,
     return loss * scale, m
 
 
-def _micro_batches(rows: dict[str, torch.Tensor], idx: torch.Tensor, micro: int,
-                   aggregation: str) -> list[tuple[dict[str, torch.Tensor], float]]:
-    """Micro-batches of rows `idx` (all-padding columns trimmed) with their share of the minibatch loss."""
+def _micro_batches(rows: dict[str, torch.Tensor], idx: torch.Tensor, micro: int, aggregation: str,
+                   rank: int = 0, world: int = 1) -> list[tuple[dict[str, torch.Tensor], float, float]]:
+    """This process's micro-batches of the minibatch `idx` (process r takes rows r, r + W, ... of it), all-padding
+    columns trimmed, each with (its share of the minibatch loss, its share of the minibatch's loss tokens).
+
+    Shares are fractions of the WHOLE minibatch (all processes): token_mean weighs by loss tokens, the other
+    aggregations by rows, so the shares of all micro-batches of all processes sum to 1 and the accumulated (and,
+    under DDP, averaged x W) gradient is the whole minibatch's aggregation. micro = 0: one micro-batch per
+    process. Every process returns the same number of micro-batches (a process short of rows gets copies of
+    a real row with share 0), so the DDP all-reduces of the last one line up on every process."""
     total_rows = len(idx)
     total_tokens = float(rows["loss_mask"][idx].sum())
+    mine = idx[rank::world]
+    largest = -(-total_rows // world)  # rows of the largest share
+    micro = micro or largest
     out = []
-    for start in range(0, total_rows, micro):
-        sel = idx[start:start + micro]
+    for i in range(-(-largest // micro)):
+        sel = mine[i * micro:(i + 1) * micro]
+        real = len(sel) > 0
+        if not real:
+            sel = idx[:1]
         am = rows["attention_mask"][sel]
         live = am.any(0).nonzero()
         lo, hi = int(live[0]), int(live[-1]) + 1
         mb = {k: (v[sel][:, lo:hi] if v.dim() == 2 else v[sel]) for k, v in rows.items()}
-        share = float(mb["loss_mask"].sum()) / total_tokens if aggregation == "token_mean" else len(sel) / total_rows
-        out.append((mb, share))
+        tokens = float(mb["loss_mask"].sum()) / total_tokens if real else 0.0
+        share = tokens if aggregation == "token_mean" else (len(sel) / total_rows if real else 0.0)
+        out.append((mb, share, tokens))
     return out
 
 
@@ -477,9 +512,10 @@ def _train(res: Resolved, cfg: GRPOConfig, verifier, pool, problems: list[Proble
            rm_dir: Path | None, sft_dir: Path) -> Path:
     import json
 
+    from posttrain.chat import encode_prompts
     from posttrain.models import load_model, load_tokenizer, maybe_lora, reference_view, save_model
-    from posttrain.rollout import SamplingParams, collate_rollouts, generate, save_rollouts
-    from posttrain.scoring import RewardModelScorer, ScoreResult, VerifierScorer, WeightedScorer
+    from posttrain.rollout import SamplingParams, collate_rollouts, default_backend, generate, save_rollouts
+    from posttrain.scoring import RewardModelScorer, VerifierScorer, WeightedScorer
     from verifiers.runner import VerifierError
 
     run_dir = res.stage_dir()
@@ -491,17 +527,17 @@ def _train(res: Resolved, cfg: GRPOConfig, verifier, pool, problems: list[Proble
         save_resolved(res, run_dir / "config.yaml")
     accelerator.wait_for_everyone()
 
-    tokenizer = load_tokenizer(sft_dir)
-    model = maybe_lora(res, load_model(sft_dir, device=accelerator.device), say)  # LoRA: adapters start at 0
+    tokenizer = load_tokenizer(sft_dir, res.model)
+    model = maybe_lora(res, load_model(sft_dir, res.model.dtype, device=accelerator.device), say)  # LoRA: adapters start at 0
     # beta = 0: no reference model at all; LoRA: the policy with its adapters off (no copy of the weights)
     ref_model = None
     if cfg.beta > 0:
         ref_model = reference_view(model) if res.use_lora else \
-            load_model(sft_dir, device=accelerator.device).eval().requires_grad_(False)
+            load_model(sft_dir, res.model.dtype, device=accelerator.device).eval().requires_grad_(False)
 
     # Prompts tokenized once (the engine takes ids); prompt + max_new_tokens > max_length: dropped with a count.
     def tokenize(ps: list[Problem], what: str) -> list[Problem]:
-        ids = tokenizer([p.prompt for p in ps], add_special_tokens=True)["input_ids"] if ps else []
+        ids = encode_prompts(tokenizer, [p.prompt for p in ps])  # chat template when it has one
         kept = []
         for p, x in zip(ps, ids):
             if len(x) + cfg.max_new_tokens <= res.model.max_length:
@@ -536,7 +572,10 @@ def _train(res: Resolved, cfg: GRPOConfig, verifier, pool, problems: list[Proble
 
     K, P = cfg.group_size, cfg.prompts_per_step
     rank, world = accelerator.process_index, accelerator.num_processes
-    per_process = max(1, P // world)
+    # pi_old recomputed: asked for, a truncated sampler (top-p) at temperature != 1, or vLLM rollouts (their
+    # log-probs come from vLLM's forward, not the training one; see posttrain.rollout.vllm_backend).
+    recompute_old = cfg.old_logprobs == "recompute" or (cfg.temperature != 1.0 and cfg.top_p < 1.0) \
+        or default_backend() == "vllm"
     optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
     scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps * cfg.mu * cfg.minibatches,
                                      cfg.schedule, cfg.min_lr_ratio)
@@ -614,90 +653,161 @@ def _train(res: Resolved, cfg: GRPOConfig, verifier, pool, problems: list[Proble
     # ------------------------------------------------------------------ one step's rollouts
     timing: dict[str, float] = collections.defaultdict(float)
 
+    def sample_groups(step: int, rnd: int, ps: list[Problem]) -> tuple[list[tuple], str | None, int]:
+        """This process's prompts x K samples in one generate call, scored: ([(problem, K rollouts, K rewards,
+        K reasons, {part: K values})], the message of a verifier error under on_verifier_error=stop, number of
+        distinct completions scored)."""
+        if not ps:  # more processes than prompts: this one has none this round
+            return [], None, 0
+        params = SamplingParams(n=K, max_new_tokens=cfg.max_new_tokens, temperature=cfg.temperature,
+                                top_p=cfg.top_p, seed=cfg.seed * 1_000_003 + step * 31 + rnd)
+        t0 = time.time()
+        out = generate(policy(), tokenizer, [p.prompt_ids for p in ps], params, prompt_keys=[p.key for p in ps])
+        texts = [r.text for r in out]
+        t1 = time.time()
+        # Identical completions of the same prompt are scored once (verifiers and reward models are
+        # deterministic): a confident policy samples many duplicates, and a sandbox check costs ~50 ms.
+        first: dict[tuple[int, str], int] = {}
+        slot = [first.setdefault((ps[i // K].key, t), len(first)) for i, t in enumerate(texts)]
+        uniq = list(first)  # (problem key, text) in first-seen order
+        by_key = {p.key: p for p in ps}
+        try:
+            su = scorer.score([by_key[k].prompt for k, _ in uniq], [t for _, t in uniq],
+                              [by_key[k].reference for k, _ in uniq] if vscorer is not None else None)
+        except VerifierError as e:  # on_verifier_error=stop: reported after the gather, by every process
+            row = uniq[e.index][0] + 1 if e.index is not None and rm_scorer is None else "?"
+            return [], (f"verifier {verifier.name!r} raised {e.exc_type} at step {step + 1} on a completion of "
+                        f"training problem row {row}: {e.message} (on_verifier_error=stop)"), 0
+        timing["sample"] += t1 - t0
+        timing["score"] += time.time() - t1
+        groups = []
+        for g, p in enumerate(ps):
+            sl = [slot[g * K + j] for j in range(K)]
+            groups.append((p, out[g * K:(g + 1) * K], [su.rewards[i] for i in sl], [su.reasons[i] for i in sl],
+                           {k: [v[i] for i in sl] for k, v in su.parts.items()}))
+        return groups, None, len(uniq)
+
     def sample_and_score(step: int) -> StepBatch:
-        """P prompts x K samples in one generate call, scored; resampled rounds when zero_variance=resample."""
+        """The step's P prompts x K samples, scored; resampled rounds when zero_variance=resample.
+
+        Each process samples and scores its share of every round's prompts (positions r, r + W, ... of the
+        global batch; prompt keys are problem indices, so they are the samples one process would draw), then
+        the groups are gathered: every process holds the whole step batch in global order, and every decision
+        and statistic taken from it (resampling, zero-variance filter, advantages, metrics) is global."""
         rollouts, groups, rewards, reasons = [], [], [], []
         parts: dict[str, list[float]] = collections.defaultdict(list)
-        informative, first_round = 0, 0
+        informative, first_round, scored = 0, 0, 0
         rounds = 1 + (cfg.max_resample_rounds if cfg.zero_variance == "resample" else 0)
         for rnd in range(rounds):
-            idx = loop.batch_indices(len(problems), P, cfg.seed + 7919 * rnd, step, rank, world)[:per_process]
-            ps = [problems[i] for i in idx]
-            params = SamplingParams(n=K, max_new_tokens=cfg.max_new_tokens, temperature=cfg.temperature,
-                                    top_p=cfg.top_p, seed=cfg.seed * 1_000_003 + step * 31 + rnd)
-            t0 = time.time()
-            out = generate(policy(), tokenizer, [p.prompt_ids for p in ps], params, prompt_keys=[p.key for p in ps])
-            texts = [r.text for r in out]
-            t1 = time.time()
-            # Identical completions of the same prompt are scored once (verifiers and reward models are
-            # deterministic): a confident policy samples many duplicates, and a sandbox check costs ~50 ms.
-            first: dict[tuple[int, str], int] = {}
-            slot = [first.setdefault((ps[i // K].key, t), len(first)) for i, t in enumerate(texts)]
-            uniq = list(first)  # (problem key, text) in first-seen order
-            by_key = {p.key: p for p in ps}
-            try:
-                su = scorer.score([by_key[k].prompt for k, _ in uniq], [t for _, t in uniq],
-                                  [by_key[k].reference for k, _ in uniq] if vscorer is not None else None)
-            except VerifierError as e:  # on_verifier_error=stop
-                row = uniq[e.index][0] + 1 if e.index is not None and rm_scorer is None else "?"
-                raise loop.TrainingError(f"verifier {verifier.name!r} raised {e.exc_type} at step {step + 1} on a "
-                                         f"completion of training problem row {row}: {e.message} "
-                                         "(on_verifier_error=stop)") from None
-            sr = ScoreResult([su.rewards[j] for j in slot], {k: [v[j] for j in slot] for k, v in su.parts.items()},
-                             [su.reasons[j] for j in slot])
-            timing["sample"] += t1 - t0
-            timing["score"] += time.time() - t1
-            timing["scored"] += len(uniq)
-            if vscorer is not None and all("verifier error:" in x for x in sr.reasons):
+            idx = loop.batch_indices(len(problems), P, cfg.seed + 7919 * rnd, step)  # the global batch
+            mine = list(range(rank, P, world))  # this process's positions in it
+            local, error, n_scored = sample_groups(step, rnd, [problems[idx[i]] for i in mine])
+            shards = [(list(zip(mine, local)), error, n_scored)]
+            if world > 1:
+                from accelerate.utils import gather_object
+
+                shards = gather_object(shards)  # one entry per process
+            errors = [e for _, e, _ in shards if e]
+            if errors:
+                raise loop.TrainingError(errors[0])
+            scored += sum(n for _, _, n in shards)
+            round_groups = [g for _, g in sorted((x for sh, _, _ in shards for x in sh), key=lambda t: t[0])]
+            round_reasons = [x for g in round_groups for x in g[3]]
+            if vscorer is not None and all("verifier error:" in x for x in round_reasons):
                 raise loop.TrainingError(f"verifier {verifier.name!r} raised on every completion of step {step + 1} "
-                                         f"({sr.reasons[0]}); the reward is broken")
-            rollouts += out
-            groups += ps
-            rewards += sr.rewards
-            reasons += sr.reasons
-            for k, v in sr.parts.items():
-                parts[k] += v
-            first_round = first_round or len(ps)
-            informative += int((~zero_variance_groups(torch.tensor(sr.rewards), K)).sum())
-            if informative >= len(ps):
+                                         f"({round_reasons[0]}); the reward is broken")
+            for p, outs, rs, why, pv in round_groups:
+                rollouts += outs
+                groups.append(p)
+                rewards += rs
+                reasons += why
+                for k, v in pv.items():
+                    parts[k] += v
+            first_round = first_round or len(round_groups)
+            informative += int((~zero_variance_groups(torch.tensor([r for g in round_groups for r in g[2]]),
+                                                      K)).sum())
+            if informative >= P:
                 break
+        timing["scored"] += scored
         return StepBatch(rollouts, groups, torch.tensor(rewards, dtype=torch.float32), dict(parts), reasons,
                          first_round, rnd + 1)
 
+    def sharded_logprobs(m, batch, micro: int) -> torch.Tensor:
+        """No-grad log-probs (B, T) of every row of `batch` under `m`: each process computes rows r, r + W, ...,
+        then they are gathered (every process needs all rows: its minibatch rows change with every pass)."""
+        if world == 1:
+            return batched_logprobs(m, batch, micro, temperature=cfg.temperature)[0]
+        B, T = batch.input_ids.shape
+        own = torch.arange(rank, B, world, device=batch.input_ids.device)
+        share = -(-B // world)  # rows of the largest share; the others are padded to it for the gather
+        local = torch.zeros(share, T, dtype=torch.float32, device=batch.input_ids.device)
+        if len(own):
+            rows_ = {"input_ids": batch.input_ids[own], "attention_mask": batch.attention_mask[own],
+                     "completion_mask": batch.completion_mask[own]}
+            local[:len(own)] = batched_logprobs(m, rows_, micro, temperature=cfg.temperature)[0]
+        every = accelerator.gather(local)  # (W * share, T), process-major
+        out = torch.empty(B, T, dtype=torch.float32, device=every.device)
+        for p in range(world):
+            n = len(range(p, B, world))
+            out[p::world] = every[p * share:p * share + n]
+        return out
+
     def update(step: int, sb: StepBatch) -> dict[str, float]:
-        """Advantages of the kept groups, then mu passes x minibatches optimizer updates; the update metrics."""
+        """Advantages of the kept groups, then mu passes x minibatches optimizer updates; the update metrics.
+
+        The step batch is the same on every process, so the advantages, the row order of each pass and the
+        minibatches are too; of each minibatch, process r trains rows r, r + W, ..., with its loss scaled to
+        its share of the whole minibatch's aggregation (token_mean: its loss tokens / the minibatch's) times W,
+        so DDP's gradient average is the whole minibatch's gradient, as in one process."""
         zv = zero_variance_groups(sb.rewards, K)  # (G,)
         keep = torch.ones_like(zv) if cfg.zero_variance == "keep" else ~zv  # (G,)
         if cfg.zero_variance == "resample":
-            keep &= torch.cumsum(keep.long(), 0) <= per_process  # refill up to P groups, no more
+            keep &= torch.cumsum(keep.long(), 0) <= P  # refill up to P groups, no more
         rows_idx = [g * K + j for g in keep.nonzero().flatten().tolist() for j in range(K)]
         if not rows_idx:
             return {"loss": 0.0, "rows/trained": 0.0, "updates": 0.0}
         rewards = sb.rewards[rows_idx]  # (n,)
         adv = group_advantages(rewards, K, estimator=cfg.estimator, std_scale=cfg.std_scale)  # (n,)
-        batch = collate_rollouts([sb.rollouts[i] for i in rows_idx], tokenizer.pad_token_id)
+        batch = collate_rollouts([sb.rollouts[i] for i in rows_idx], tokenizer.pad_token_id).to(accelerator.device)
         loss_mask = batch.completion_mask.clone()  # (n, T)
         if cfg.mask_truncated:  # DAPO overlong filtering: truncated completions carry no loss
-            loss_mask[torch.tensor([sb.rollouts[i].finish_reason == "length" for i in rows_idx])] = 0
+            loss_mask[torch.tensor([sb.rollouts[i].finish_reason == "length" for i in rows_idx],
+                                   device=loss_mask.device)] = 0
         # pi_old from the engine: raw log-probs at temperature 1, or (temperature != 1, no top-p) the log-probs
         # of the distribution it sampled, softmax(logits / T), which is the one the loss uses; else recompute.
         rows = {"input_ids": batch.input_ids, "attention_mask": batch.attention_mask, "loss_mask": loss_mask,
-                "advantages": adv, "old_logps": batch.policy_logprobs if cfg.temperature == 1.0 else batch.logprobs}
+                "advantages": adv.to(accelerator.device),
+                "old_logps": batch.policy_logprobs if cfg.temperature == 1.0 else batch.logprobs}
         micro = cfg.micro_batch_size or len(rows_idx)
-        if cfg.old_logprobs == "recompute" or (cfg.temperature != 1.0 and cfg.top_p < 1.0):
-            rows["old_logps"], _ = batched_logprobs(policy(), batch, micro, temperature=cfg.temperature)
+        if recompute_old:
+            rows["old_logps"] = sharded_logprobs(policy(), batch, micro)
         if ref_model is not None:
-            rows["ref_logps"], _ = batched_logprobs(ref_model, batch, micro, temperature=cfg.temperature)
-        usable = (loss_mask.sum(-1) > 0).nonzero().flatten()  # rows with at least one loss token
+            rows["ref_logps"] = sharded_logprobs(ref_model, batch, micro)
+        usable = (loss_mask.sum(-1) > 0).nonzero().flatten().cpu()  # rows with at least one loss token
         upd: dict[str, list[float]] = collections.defaultdict(list)
         for epoch in range(cfg.mu if len(usable) else 0):
             gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step * 101 + epoch)
             order = usable[torch.randperm(len(usable), generator=gen)]
             for mb_idx in torch.tensor_split(order, min(cfg.minibatches, len(usable))):
-                mbs = _micro_batches(rows, mb_idx, cfg.micro_batch_size or len(mb_idx), cfg.aggregation)
-                out = loop.optimizer_step(accelerator, model, optimizer, scheduler, mbs,
-                                          lambda x, first=epoch == 0: grpo_loss(cfg, model, x[0], x[1], first),
-                                          cfg.max_grad_norm, step + 1)
+                mbs = _micro_batches(rows, mb_idx.to(accelerator.device), cfg.micro_batch_size, cfg.aggregation,
+                                     rank, world)
+
+                def loss_fn(x, first=epoch == 0, n=len(mbs)):
+                    mb, share, tokens = x
+                    loss, m = grpo_loss(cfg, model, mb, share * world, first)
+                    # loop.optimizer_step averages metrics over micro-batches and processes: weighted so that
+                    # average is the whole minibatch's (token means by loss tokens, policy_loss by loss share).
+                    w = n * world
+                    m = {k: (v if k == "ratio_max" else v * w * (share if k == "policy_loss" else tokens))
+                         for k, v in m.items()}
+                    if tokens == 0.0:
+                        m["ratio_max"] = float("-inf")  # a padding micro-batch: no rows of this process
+                    if world > 1 and loop.global_sum(accelerator, 0.0 if bool(torch.isfinite(loss)) else 1.0):
+                        loss = loss * float("nan")  # any process non-finite: every process stops at this step
+                    return loss, m
+
+                out = loop.optimizer_step(accelerator, model, optimizer, scheduler, mbs, loss_fn, cfg.max_grad_norm,
+                                          step + 1)
                 for k, v in out.items():
                     upd[k].append(v)
         m = {k: (max(v) if k == "ratio_max" else sum(v) / len(v)) for k, v in upd.items()}
@@ -712,7 +822,9 @@ def _train(res: Resolved, cfg: GRPOConfig, verifier, pool, problems: list[Proble
         f"{cfg.reward_model_weight:g} * reward model {rm_dir}" if rm_scorer is not None else "") if x)
     say(f"[grpo] {len(problems)} training problems, {P} prompts x {K} samples per step, {cfg.max_steps} steps "
         f"({cfg.mu} pass(es) x {cfg.minibatches} update(s) each); reward: {reward_desc}; {cfg.estimator} advantages "
-        f"({cfg.std_scale} std), {cfg.aggregation}, beta {cfg.beta}, zero-variance groups: {cfg.zero_variance}")
+        f"({cfg.std_scale} std), {cfg.aggregation}, beta {cfg.beta}, zero-variance groups: {cfg.zero_variance}; "
+        f"rollouts: {default_backend()} backend" + (" (pi_old recomputed)" if recompute_old else "")
+        + f"; {world} process(es) on {accelerator.device}")
     t_start = time.time()
     for step in range(start, cfg.max_steps):
         done = step + 1

@@ -263,20 +263,22 @@ def disable_dropout(model) -> int:
     return changed
 
 
-def build_value_model(value_init: str, sft_dir: Path, rm_dir: Path | None, pad_id: int, seed: int, device):
+def build_value_model(value_init: str, sft_dir: Path, rm_dir: Path | None, pad_id: int, seed: int, device,
+                      dtype: str | torch.dtype = torch.float32):
     """Detail 11: the value model, a sequence-classification model whose head is read at every token."""
     from transformers import AutoModelForSequenceClassification
 
+    from posttrain.models import resolve_dtype
     from posttrain.trainers.reward import load_reward_init
 
     if value_init == "reward":
         if rm_dir is None:
             raise ConfigError("ppo.value_init=reward needs a reward model; set ppo.reward_model or value_init=policy")
         model = AutoModelForSequenceClassification.from_pretrained(str(rm_dir), local_files_only=True,
-                                                                   dtype=torch.float32)
+                                                                   dtype=resolve_dtype(dtype))
         model.config.pad_token_id = pad_id
         return model.to(device)
-    return load_reward_init(sft_dir, pad_id, seed, device)
+    return load_reward_init(sft_dir, pad_id, seed, device, dtype)
 
 
 def token_values(value_model, input_ids: torch.Tensor, attention_mask: torch.Tensor) -> torch.Tensor:
@@ -479,7 +481,7 @@ def train(res: Resolved, ensure) -> Path:
         rm_dir = ensure("rm")
     elif rm_dir is None and is_model_dir(res.stage_dir("rm") / "final"):
         rm_dir = res.stage_dir("rm") / "final"  # reward=gold: the RM is only the proxy curve
-    tokenizer = load_tokenizer(sft_dir)
+    tokenizer = load_tokenizer(sft_dir, res.model)
     pad_id = tokenizer.pad_token_id
 
     accelerator = loop.setup(cfg.seed, res.run.threads)
@@ -497,10 +499,11 @@ def train(res: Resolved, ensure) -> Path:
 
     # Models: policy and reference are the SFT model (LoRA: one model, the reference is it with the
     # adapters off); the value model per value_init (LoRA: its own adapters); the reward.
-    policy = maybe_lora(res, load_model(sft_dir, device=dev), lambda m: say(m + " (policy)"))
+    policy = maybe_lora(res, load_model(sft_dir, res.model.dtype, device=dev), lambda m: say(m + " (policy)"))
     reference = reference_view(policy) if res.use_lora else \
-        load_model(sft_dir, device=dev).eval().requires_grad_(False)
-    value_model = maybe_lora(res, build_value_model(cfg.value_init, sft_dir, rm_dir, pad_id, cfg.seed, dev),
+        load_model(sft_dir, res.model.dtype, device=dev).eval().requires_grad_(False)
+    value_model = maybe_lora(res, build_value_model(cfg.value_init, sft_dir, rm_dir, pad_id, cfg.seed, dev,
+                                                    res.model.dtype),
                              lambda m: say(m + " (value model)"), "SEQ_CLS")
     if cfg.disable_dropout:
         for m in (policy, reference, value_model):

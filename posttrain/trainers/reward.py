@@ -109,14 +109,17 @@ def heldout_metrics(model, pairs: list[TokenizedPair], pad_id: int, micro: int) 
     return {f"eval/{k}": v / len(pairs) for k, v in sums.items()}
 
 
-def load_reward_init(sft_dir: Path, pad_id: int, seed: int, device):
-    """The SFT transformer under a new one-output head (`AutoModelForSequenceClassification`, seeded init)."""
+def load_reward_init(sft_dir: Path, pad_id: int, seed: int, device, dtype: str | torch.dtype = torch.float32):
+    """The SFT transformer under a new one-output head (`AutoModelForSequenceClassification`, seeded init);
+    weights in `dtype` (a `model.dtype` name or a torch dtype)."""
     from transformers import AutoModelForSequenceClassification
+
+    from posttrain.models import resolve_dtype
 
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        model = AutoModelForSequenceClassification.from_pretrained(str(sft_dir), num_labels=1, dtype=torch.float32,
-                                                                   local_files_only=True)
+        model = AutoModelForSequenceClassification.from_pretrained(str(sft_dir), num_labels=1,
+                                                                   dtype=resolve_dtype(dtype), local_files_only=True)
     model.config.pad_token_id = pad_id
     return model.to(device)
 
@@ -135,7 +138,7 @@ def train(res: Resolved, ensure) -> Path:
         preferences.check_pairs(train_rows, source, "error")
         preferences.check_pairs(eval_rows[: cfg.eval_pairs], eval_source, "error")
     sft_dir = ensure("sft")
-    tokenizer = load_tokenizer(sft_dir)
+    tokenizer = load_tokenizer(sft_dir, res.model)
     pad_id = tokenizer.pad_token_id
     append_eos = rm_appends_eos(tokenizer)
     _, train_pairs, bad = preferences.check_pairs(train_rows, source, cfg.on_bad_rows, tokenizer,
@@ -159,7 +162,8 @@ def train(res: Resolved, ensure) -> Path:
     accelerator.wait_for_everyone()
 
     # LoRA: adapters on the transformer, the new score head trained fully (peft's SEQ_CLS modules_to_save)
-    model = maybe_lora(res, load_reward_init(sft_dir, pad_id, cfg.seed, accelerator.device), say, "SEQ_CLS")
+    model = maybe_lora(res, load_reward_init(sft_dir, pad_id, cfg.seed, accelerator.device, res.model.dtype), say,
+                       "SEQ_CLS")
     micro = cfg.micro_batch_size or cfg.batch_size
     per_process = max(1, cfg.batch_size // accelerator.num_processes)
     optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)

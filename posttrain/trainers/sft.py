@@ -17,6 +17,9 @@ Details:
   for it the documents are the only pretraining signal, and they teach in-context copying
   (names repeat within a document), which a summariser needs. The tiny-summarize recipe
   sets 0.1; with a pretrained model leave it at 0.
+- Prompts go through the model's chat template when its tokenizer has one (`posttrain.chat`:
+  a local instruct checkpoint as model.path); the eos appended to completions is then its
+  end-of-turn token (e.g. Qwen's <|im_end|>).
 - Rows longer than model.max_length are dropped with a count (never silently truncated:
   a truncated completion would teach the model to stop without eos).
 - Log-probs come from `posttrain.logprobs` (the single implementation); samples and the
@@ -32,6 +35,7 @@ from typing import Literal
 import torch
 
 from posttrain import loop
+from posttrain.chat import encode_prompts
 from posttrain.config import Resolved, save_resolved
 from posttrain.logprobs import sequence_logprobs
 
@@ -83,8 +87,8 @@ class SFTConfig:
 # ----------------------------------------------------------------------------- data
 def tokenize_sft(rows: list[dict], tokenizer, max_length: int) -> tuple[list[tuple[list[int], list[int]]], int]:
     """[(prompt_ids, completion_ids + eos)] and the number of rows dropped for length."""
-    # Prompts get the tokenizer's special tokens (e.g. a BOS) exactly as the rollout engine adds them.
-    prompts = tokenizer([r["prompt"] for r in rows], add_special_tokens=True)["input_ids"]
+    # Prompts rendered (chat template) and tokenized exactly as the rollout engine does (posttrain.chat).
+    prompts = encode_prompts(tokenizer, [r["prompt"] for r in rows])
     comps = tokenizer([r["completion"] for r in rows], add_special_tokens=False)["input_ids"]
     out, dropped = [], 0
     for p, c in zip(prompts, comps):
@@ -160,8 +164,8 @@ def train(res: Resolved, ensure) -> Path:
         save_resolved(res, run_dir / "config.yaml")
     accelerator.wait_for_everyone()
 
-    tokenizer = load_tokenizer(base_dir)
-    model = maybe_lora(res, load_model(base_dir, device=accelerator.device), say)
+    tokenizer = load_tokenizer(base_dir, res.model)
+    model = maybe_lora(res, load_model(base_dir, res.model.dtype, device=accelerator.device), say)
     train_pairs, dropped = tokenize_sft(train_rows, tokenizer, res.model.max_length)
     eval_pairs, _ = tokenize_sft(eval_rows[: cfg.eval_loss_rows], tokenizer, res.model.max_length)
     if dropped:
@@ -233,7 +237,8 @@ def train(res: Resolved, ensure) -> Path:
         say(f"[sft] saved {final}")
         if cfg.final_eval_rows:
             rows = eval_rows[: cfg.final_eval_rows]
-            before = evaluation.evaluate_model(res.task.name, load_model(base_dir), tokenizer, rows,
+            untrained = load_model(base_dir, res.model.dtype, device=accelerator.device)
+            before = evaluation.evaluate_model(res.task.name, untrained, tokenizer, rows,
                                                max_new_tokens=cfg.max_new_tokens)
             after = evaluation.evaluate_model(res.task.name, accelerator.unwrap_model(model), tokenizer, rows,
                                               max_new_tokens=cfg.max_new_tokens)
