@@ -1,43 +1,97 @@
 """Benchmarks, measured side by side in one run and reported as ratios (never timed assertions in tests).
 
-Sections (`--only NAME`, repeatable; later issues add trainer sections to SECTIONS):
+Sections (`--only NAME`, repeatable; all of them by default, in this order):
   generate  the rollout engine (`posttrain.rollout.generate`) against `model.generate` on the same
             random-init preset, prompts (16-48 tokens, mixed), settings (sampling at temperature 1, no
             top-k / top-p) and seed; both produce exactly max_new_tokens per row (`min_new_tokens` for
             generate, `ignore_eos=True` for the engine). Warm-up excluded, runs alternate, medians.
+  sft       our SFT step (trainers/sft.py's tokenize_sft / collate / sft_loss_sum with loop.optimizer_step)
+            against TRL's SFTTrainer on the same tiny model and tiny-summarize rows, given to TRL as our own
+            token ids (input_ids + completion_mask, so both see identical tokens), batch 16, lr 1e-4
+            constant, clipping 1.0, max length 256, completion-only loss, same batch order (TRL's sampler
+            "sequential"), no packing / padding-free on either side; tokens/s (non-pad tokens) and ratio.
+  rm        our reward-model step (trainers/reward.py's pair_rewards + losses.bradley_terry_loss) against
+            TRL's RewardTrainer on the same tiny reward model (the tiny LM under a seeded one-output head,
+            `load_reward_init`), the same pairs as our token ids (chosen_ids / rejected_ids), batch 16, lr
+            1e-4 constant, same order; chosen and rejected in one forward on both sides; pairs/s and ratio.
   dpo       our DPO training loop (trainers/dpo.py's pair_logps / pair_loss / reference_logps with
-            loop.optimizer_step) against TRL's DPOTrainer (optional: `pip install -e '.[bench]'`) on
-            the same tiny model, tiny-summarize pairs, batch (8), lr and beta, TRL set up for this CPU
-            (fp32, no gradient checkpointing); tokens/s of the same pairs, reference log-probs included.
+            loop.optimizer_step) against TRL's DPOTrainer on the same tiny model, tiny-summarize pairs,
+            batch (8), lr and beta, same order; tokens/s of the same pairs, reference log-probs included.
+  ppo       a PPO iteration of `posttrain ppo` (the trainer, through the CLI) on tiny-summarize with a
+            random-init tiny policy and reward model, split into rollout / scoring / the rest (old, reference
+            and value forwards, GAE, ppo_epochs x minibatch updates). TRL has no PPO trainer to compare with
+            in the installed version (it was moved to trl.experimental.ppo in TRL 1.10, huggingface/trl#4482,
+            and deleted, huggingface/trl#7020), so this section prints our numbers and no ratio; if a TRL
+            PPOTrainer is importable it says so (a comparison would need its own driver).
   grpo      a GRPO step of `posttrain grpo` (the trainer, through the CLI) against TRL's GRPOTrainer on the
             same random-init tiny model, prompts, 2 prompts x 8 completions x <= 64 tokens, reward (length
-            verifier), beta 0, one pass, TRL set up for this CPU (fp32, no gradient checkpointing); s/step.
+            verifier), beta 0, one pass; s/step.
+  scaling   how cost grows with model size (--presets, default tiny and small) and sequence length: the
+            rollout engine (batch 16, 32-token prompts, 64/128/256 new tokens; 64/128 with --quick) and a
+            training step (forward + backward + AdamW on batch 8 of 64/128/256 tokens), tokens/s, time
+            relative to the shortest length and to the first preset, achieved GFLOP/s against this machine's
+            measured fp32 matmul rate. Ours only (no TRL counterpart).
+Every TRL comparison: TRL (optional: `pip install -e '.[bench]'`) configured for this CPU (fp32: bf16=False,
+activation (gradient) checkpointing off, asserted after each run; no logging / saving / eval), each side's
+own AdamW implementation; each implementation runs once untimed first (warm-up), then runs alternate,
+medians (ppo and grpo: the first iteration(s) of every run are the warm-up). Both run in the same process,
+so posttrain's glibc malloc tuning (`loop.setup`) applies to TRL's timed runs too. sft and rm also check
+that TRL trained on exactly our non-pad token count.
 
-CPU:       python scripts/bench.py --quick            (< 2 min on 2 cores)
-           python scripts/bench.py --only generate --threads 2 --json runs/bench.json
-Multi-GPU: not applicable (single-process microbenchmarks; `--device cuda` runs the generate section on one GPU).
-Runtime:   --quick about 1 min on 2 CPU cores when the machine is otherwise idle; full about 4 min.
+Peak memory (every section but scaling; --no-memory skips it): each implementation runs its timed workload
+(generate: the first preset at the largest batch; dpo --quick: TRL's default live-reference variant only)
+once more in a FRESH Python process (`--memory-probe SECTION:IMPL`, started by the section), after the
+section's shared setup (imports, tokenizer, data, base model). We record the process's resident set just
+before the run, reset the kernel's peak-RSS mark (`/proc/self/clear_refs` <- 5) and read the peak
+(`VmHWM`) after it: peak RSS above the pre-run baseline, in MiB, i.e. everything the implementation
+allocates (its model copies, reference, optimizer state, activations, caches), which tracemalloc cannot see
+(torch allocates outside Python's allocator). A fresh process per implementation because freed memory
+stays in the allocator (posttrain raises glibc's trim threshold) and would hide the second one's growth.
+Linux only (elsewhere the probe says so and reports nothing); host memory only (with --device cuda, GPU
+memory is not counted).
+
+CPU:       python scripts/bench.py --quick            (all sections, every ratio; < 3 min on 2 idle cores)
+           python scripts/bench.py --only sft --only rm --threads 2 --json runs/bench.json
+           python scripts/bench.py --only scaling --presets tiny,small,base
+Multi-GPU: not applicable (single-process microbenchmarks; `--device cuda` runs generate and scaling on one GPU).
+Runtime:   --quick: 4 min 46 s measured single-threaded on a loaded 2-core machine (load average 3-3.5, 3 min
+           15 s of CPU), memory probes included; about 2 min expected on 2 idle cores (not yet measured
+           there). Full: roughly 3x the quick run.
 
 Achieved GFLOP/s counts the same useful work for both implementations:
-  FLOPs = 2*N_block*(sum_prompt_tokens + B*(M-1)) + 2*N_head*B*M + 4*L*H*Dh*(attended key positions)
+  generation FLOPs = 2*N_block*(sum_prompt_tokens + B*(M-1)) + 2*N_head*B*M + 4*L*H*Dh*(attended key positions)
 with N_block the parameters of the transformer blocks, N_head = d_model*V (the logits matmul, run once
 per sampled token), M new tokens per row, and attended positions summed over every fed token (a prompt
-token at position i attends to i+1 keys, the t-th new token to prompt_len+t). The reference is the
-machine's fp32 matmul rate, measured first with a large torch.matmul on the same threads.
+token at position i attends to i+1 keys, the t-th new token to prompt_len+t).
+  training FLOPs = 6*N_block*B*T + 6*N_head*B*(T-1) + 12*L*H*Dh*B*T(T+1)/2
+for a forward + backward over B rows of T tokens (the "6N" rule: 2 FLOPs per parameter per token forward,
+4 backward; logits only at the T-1 positions that have a target; causal attention's QK^T and AV, 4*Dh FLOPs
+per query-key pair per head forward, x3 with backward). Norms, activations, softmax and the AdamW update
+(~10 FLOPs per parameter per step) are left out, so the figures slightly understate the work. The
+reference is the machine's fp32 matmul rate: a large torch.matmul on the same threads, timed at the start of
+generate and of scaling (best of 10), the best rate seen in the run.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
+import functools
+import gc
 import io
 import json
 import os
 import platform
 import random
+import re
+import shutil
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 
@@ -52,7 +106,6 @@ from posttrain.rollout import generate, select_backend  # noqa: E402
 
 def _load() -> str:
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
-
 
 
 def matmul_gflops(n: int, repeats: int, device: str = "cpu") -> float:
@@ -70,6 +123,17 @@ def matmul_gflops(n: int, repeats: int, device: str = "cpu") -> float:
             torch.cuda.synchronize()
         times.append(time.perf_counter() - t0)
     return 2 * n ** 3 / min(times) / 1e9
+
+
+def matmul_peak(args) -> float:
+    """The fp32 matmul rate on this run's threads: measured at each call (each section that reports a % of it),
+    the best rate seen so far in this run returned (a probe slowed by other load must not inflate the %)."""
+    n = 1024 if args.quick else 2048
+    now = matmul_gflops(n, 10, args.device)
+    args.matmul_peak = max(now, getattr(args, "matmul_peak", None) or 0.0)
+    print(f"fp32 matmul rate ({n}^3, {torch.get_num_threads()} threads): {now:.0f} GFLOP/s now, "
+          f"{args.matmul_peak:.0f} GFLOP/s best this run (the reference for '% of matmul')")
+    return args.matmul_peak
 
 
 def _sync(device: str) -> None:
@@ -104,7 +168,168 @@ def generation_flops(model, prompt_lens: list[int], new_tokens: int) -> float:
     return 2 * n_block * fed + 2 * d * V * B * M + 4 * L * H * Dh * attended
 
 
+def training_flops(model, batch: int, seq_len: int) -> float:
+    """Forward + backward FLOPs of a causal-LM loss over `batch` unpadded rows of `seq_len` tokens (see the
+    module docstring): 6*N_block*tokens + 6*d*V*(positions with a target) + 12*L*H*Dh*(causal query-key pairs)."""
+    cfg = model.config
+    L, d, V = cfg.num_hidden_layers, cfg.hidden_size, cfg.vocab_size
+    H = cfg.num_attention_heads
+    Dh = getattr(cfg, "head_dim", None) or d // H
+    n_block = sum(p.numel() for p in model.model.layers.parameters())
+    B, T = batch, seq_len
+    return 6 * n_block * B * T + 6 * d * V * B * (T - 1) + 12 * L * H * Dh * B * T * (T + 1) // 2
+
+
+def _alternate(runners: dict, repeats: int, device: str) -> dict[str, list[float]]:
+    """Each runner (returning its own elapsed seconds) once untimed (warm-up), then `repeats` alternating rounds."""
+    for fn in runners.values():
+        fn()
+    times: dict[str, list[float]] = {k: [] for k in runners}
+    for _ in range(repeats):  # alternate the implementations so drifting load hits both
+        for k, fn in runners.items():
+            _sync(device)
+            times[k].append(fn())
+    return times
+
+
+@functools.lru_cache(maxsize=None)
+def _summarize_tokenizer():
+    from posttrain.config import TaskConfig
+    from posttrain.tasks import tokenizer_corpus
+
+    return train_tokenizer(tokenizer_corpus(TaskConfig(name="tiny-summarize", n_train=2000)), vocab_size=1024)
+
+
+def _summarize_pairs(n: int, seed: int = 0) -> list[dict]:
+    """n preference rows from the tiny-summarize generator: chosen = the reference summary, rejected =
+    another document's summary (realistic lengths; the labels do not matter for throughput)."""
+    from posttrain.tasks import get_task
+
+    ex = get_task("tiny-summarize").make_examples(n + 1, seed, "train")
+    return [{"prompt": ex[i]["prompt"], "chosen": ex[i]["completion"], "rejected": ex[i + 1]["completion"],
+             "_row": i + 1} for i in range(n)]
+
+
+def _trl_quiet():
+    """Silence TRL / transformers / datasets chatter; returns PrinterCallback (removed from every trainer)."""
+    import datasets
+    from transformers import logging as hf_logging
+    from transformers.trainer_callback import PrinterCallback
+
+    hf_logging.set_verbosity_error()
+    datasets.disable_progress_bars()
+    return PrinterCallback
+
+
+def _no_checkpointing() -> dict:
+    """Activation (gradient) checkpointing off, TRL's default on: by its current name when transformers has it."""
+    import dataclasses
+
+    from transformers import TrainingArguments
+
+    names = {f.name for f in dataclasses.fields(TrainingArguments)}
+    return {"activation_checkpointing" if "activation_checkpointing" in names else "gradient_checkpointing": False}
+
+
+def _trl_common(args, tmp: str, batch: int) -> dict:
+    """TrainingArguments shared by every TRL trainer here: fp32, no checkpointing, no logging / saving / eval,
+    our batch order (sequential sampler), one pass."""
+    return dict(output_dir=tmp, per_device_train_batch_size=batch, num_train_epochs=1,
+                lr_scheduler_type="constant", max_grad_norm=1.0, bf16=False, fp16=False,
+                **_no_checkpointing(), use_cpu=args.device == "cpu", logging_strategy="no",
+                save_strategy="no", eval_strategy="no", report_to=[], disable_tqdm=True,
+                dataloader_num_workers=0, seed=0, train_sampling_strategy="sequential")
+
+
+def _trl_missing(e: Exception) -> None:
+    print(f"TRL not installed ({e}); `pip install -e '.[bench]'` to compare. Ours alone:")
+
+
+# ------------------------------------------------------------------ peak memory (fresh process per implementation)
+
+PROBE_MARK = "BENCH-MEMORY "
+
+
+def _status_mib(key: str) -> float:
+    m = re.search(rf"^{key}:\s+(\d+) kB", Path("/proc/self/status").read_text(), re.M)
+    return int(m.group(1)) / 1024
+
+
+def _memory_probe(spec: str, args) -> int:
+    """Child side of `peak_memory`: set up SECTION, run IMPL's workload once, print its peak RSS above baseline."""
+    section, _, impl = spec.partition(":")
+    if not (Path("/proc/self/status").is_file() and Path("/proc/self/clear_refs").exists()):
+        print(PROBE_MARK + json.dumps({"error": "peak RSS needs Linux /proc (VmHWM, clear_refs)"}))
+        return 0
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        ctx = SETUPS[section](args)
+        run = ctx.runners[impl]
+        gc.collect()
+        baseline = _status_mib("VmRSS")
+        Path("/proc/self/clear_refs").write_text("5")  # reset the peak-RSS mark (VmHWM) to the current RSS
+        run()
+        peak = _status_mib("VmHWM")
+        if hasattr(ctx, "cleanup"):
+            ctx.cleanup()
+    print(PROBE_MARK + json.dumps({"baseline_mib": baseline, "peak_mib": peak, "delta_mib": peak - baseline}))
+    return 0
+
+
+def peak_memory(section: str, impls: list[str], args) -> dict[str, dict]:
+    """Peak RSS above the pre-run baseline of each implementation, each in a fresh process (module docstring)."""
+    if args.no_memory:
+        return {}
+    out = {}
+    for impl in impls:
+        cmd = [sys.executable, str(Path(__file__).resolve()), *args.argv, "--memory-probe", f"{section}:{impl}"]
+        p = subprocess.run(cmd, capture_output=True, text=True)
+        lines = [l for l in p.stdout.splitlines() if l.startswith(PROBE_MARK)]
+        if p.returncode or not lines:
+            tail = (p.stderr.strip().splitlines() or ["no output"])[-1]
+            out[impl] = {"error": f"probe failed (exit {p.returncode}): {tail}"}
+        else:
+            out[impl] = json.loads(lines[-1][len(PROBE_MARK):])
+    return out
+
+
+def print_memory(mem: dict[str, dict], labels: dict[str, str], ref: str = "posttrain") -> None:
+    if not mem:
+        return
+    base = mem.get(ref, {}).get("delta_mib")
+    print("peak memory, fresh process each (peak RSS above the RSS just before the run"
+          + (f"; ratio = it / {labels.get(ref, ref)}'s):" if base and len(mem) > 1 else "):"))
+    for impl, m in mem.items():
+        if "error" in m:
+            print(f"  {labels.get(impl, impl):<52} n/a ({m['error']})")
+            continue
+        ratio = f"{m['delta_mib'] / base:>6.2f}x" if base and impl != ref else ""
+        print(f"  {labels.get(impl, impl):<52} {m['delta_mib']:>7.0f} MiB {ratio}  (baseline {m['baseline_mib']:.0f} MiB)")
+
+
 # ------------------------------------------------------------------ section: generate
+
+
+def _generate_setup(args) -> SimpleNamespace:
+    """Memory-probe workload of the generate section: the first preset at the largest batch."""
+    corpus = _corpus(300)
+    tok = train_tokenizer(corpus, vocab_size=1024)
+    enc = [tok(c)["input_ids"] for c in corpus]
+    rng = random.Random(1)
+    B, M = max(args.batches), args.max_new_tokens
+    model = build_model(args.presets[0], tok, seed=0).to(args.device).eval()
+    prompts = [enc[i % len(enc)][:rng.randint(16, 48)] for i in range(B)]
+    batch = tok.pad({"input_ids": prompts}, return_tensors="pt").to(args.device)
+
+    def hf():
+        torch.manual_seed(0)
+        with torch.inference_mode():
+            model.generate(**batch, do_sample=True, temperature=1.0, top_k=0, top_p=1.0, max_new_tokens=M,
+                           min_new_tokens=M, pad_token_id=tok.pad_token_id, eos_token_id=tok.eos_token_id)
+
+    def engine():
+        generate(model, tok, prompts, max_new_tokens=M, temperature=1.0, ignore_eos=True, seed=0)
+
+    return SimpleNamespace(runners={"model.generate": hf, "engine": engine})
 
 
 def bench_generate(args) -> dict:
@@ -113,9 +338,7 @@ def bench_generate(args) -> dict:
     batches = args.batches
     M = args.max_new_tokens
     repeats = args.repeats
-    peak = matmul_gflops(1024 if args.quick else 2048, 5 if args.quick else 10, device)
-    print(f"fp32 matmul rate ({'1024' if args.quick else '2048'}^3, {torch.get_num_threads()} threads): "
-          f"{peak:.0f} GFLOP/s")
+    peak = matmul_peak(args)
     corpus = _corpus(300)
     tok = train_tokenizer(corpus, vocab_size=1024)
     enc = [tok(c)["input_ids"] for c in corpus]
@@ -163,23 +386,210 @@ def bench_generate(args) -> dict:
                   f"{row['hf_gflops']:>17.1f} {row['engine_gflops']:>15.1f} {row['engine_pct_of_matmul']:>10.1f}%",
                   flush=True)
     print("\nratio = generate time / engine time (medians of alternating runs).")
-    return dict(matmul_gflops=peak, rows=rows_out)
+    print(f"memory workload: {presets[0]}, batch {max(batches)}, {M} new tokens")
+    mem = peak_memory("generate", ["model.generate", "engine"], args)
+    print_memory(mem, {"model.generate": "model.generate", "engine": "posttrain rollout engine"}, ref="engine")
+    return dict(matmul_gflops=peak, rows=rows_out, memory=mem)
+
+
+# ------------------------------------------------------------------ section: sft
+
+
+def _sft_setup(args) -> SimpleNamespace:
+    """Our SFT step and TRL's SFTTrainer over the same S*B tiny-summarize rows (see the module docstring)."""
+    from posttrain import loop
+    from posttrain.tasks import get_task
+    from posttrain.trainers.sft import collate, sft_loss_sum, tokenize_sft
+
+    B, S, lr, max_len = 16, 6 if args.quick else 16, 1e-4, 256
+    tok = _summarize_tokenizer()
+    rows = get_task("tiny-summarize").make_examples(S * B, 0, "train")
+    pairs, dropped = tokenize_sft(rows, tok, max_len)
+    assert not dropped and len(pairs) == S * B
+    tokens = sum(len(p) + len(c) for p, c in pairs)  # non-pad tokens through the model
+    loss_tokens = sum(len(c) for _, c in pairs)  # completion tokens (eos included): the loss's tokens
+    base = build_model("tiny", tok, seed=0).to(args.device)
+    pad = tok.pad_token_id
+
+    def ours() -> float:
+        model = copy.deepcopy(base)
+        accelerator = loop.setup(0)
+        t0 = time.perf_counter()
+        optimizer = loop.build_optimizer(model, lr)
+        scheduler = loop.build_scheduler(optimizer, 0, S, "constant")
+        for step in range(S):
+            batch = collate(pairs[step * B:(step + 1) * B], pad)
+            n = float(batch["completion_mask"].sum())
+
+            def loss_fn(mb):
+                s, _ = sft_loss_sum(model, mb)
+                return s / n, {}
+
+            loop.optimizer_step(accelerator, model, optimizer, scheduler, [batch], loss_fn, 1.0, step + 1)
+        _sync(args.device)
+        return time.perf_counter() - t0
+
+    ctx = SimpleNamespace(B=B, S=S, lr=lr, max_len=max_len, tokens=tokens, loss_tokens=loss_tokens, base=base,
+                          runners={"posttrain": ours}, trl_error=None)
+    try:
+        from datasets import Dataset
+        from trl import SFTConfig as TRLConfig, SFTTrainer
+    except ImportError as e:
+        ctx.trl_error = e
+        return ctx
+    printer = _trl_quiet()
+    data = [{"input_ids": p + c, "completion_mask": [0] * len(p) + [1] * len(c)} for p, c in pairs]
+    tmp = tempfile.mkdtemp(prefix="posttrain-bench-sft-")
+
+    def trl_run() -> float:
+        targs = TRLConfig(learning_rate=lr, max_length=max_len, packing=False, padding_free=False,
+                          completion_only_loss=True, **_trl_common(args, tmp, B))
+        with contextlib.redirect_stderr(io.StringIO()):
+            trainer = SFTTrainer(model=copy.deepcopy(base), args=targs, train_dataset=Dataset.from_list(data),
+                                 processing_class=tok)
+            trainer.remove_callback(printer)
+            t0 = time.perf_counter()
+            out = trainer.train()
+        _sync(args.device)
+        dt = time.perf_counter() - t0
+        assert out.global_step == S, f"TRL ran {out.global_step} steps, expected {S}"
+        assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
+        seen = getattr(trainer, "_total_train_tokens", tokens)
+        assert seen == tokens, f"TRL trained on {seen} non-pad tokens, we on {tokens}"
+        return dt
+
+    ctx.runners["trl"] = trl_run
+    ctx.cleanup = lambda: shutil.rmtree(tmp, ignore_errors=True)
+    return ctx
+
+
+def bench_sft(args) -> dict:
+    ctx = _sft_setup(args)
+    repeats = 3 if args.quick else 5
+    print(f"tiny: {count_parameters(ctx.base) / 1e6:.2f}M parameters; {ctx.S} steps x {ctx.B} rows, "
+          f"{ctx.tokens / (ctx.S * ctx.B):.0f} tokens per row ({ctx.loss_tokens / (ctx.S * ctx.B):.0f} in the loss), "
+          f"lr {ctx.lr}, max length {ctx.max_len}")
+    if ctx.trl_error is not None:
+        _trl_missing(ctx.trl_error)
+        t = statistics.median(_alternate(ctx.runners, repeats, args.device)["posttrain"])
+        print(f"ours: {ctx.tokens / t:.0f} tokens/s")
+        return dict(ours_tok_s=ctx.tokens / t)
+    times = _alternate(ctx.runners, repeats, args.device)
+    mo, mt = statistics.median(times["posttrain"]), statistics.median(times["trl"])
+    print(f"{'implementation':<44} {'tokens/s':>9} {'loss tok/s':>10} {'s/step':>7} {'ratio':>7}")
+    print(f"{'TRL SFTTrainer':<44} {ctx.tokens / mt:>9.0f} {ctx.loss_tokens / mt:>10.0f} {mt / ctx.S:>7.3f} "
+          f"{mt / mo:>6.2f}x")
+    print(f"{'posttrain SFT step':<44} {ctx.tokens / mo:>9.0f} {ctx.loss_tokens / mo:>10.0f} {mo / ctx.S:>7.3f} "
+          f"{'1.00x':>7}")
+    print("ratio = TRL time / posttrain time for the same rows, batches and order.")
+    mem = peak_memory("sft", ["posttrain", "trl"], args)
+    print_memory(mem, {"posttrain": "posttrain SFT step", "trl": "TRL SFTTrainer"})
+    ctx.cleanup()
+    return dict(batch=ctx.B, steps=ctx.S, tokens=ctx.tokens, loss_tokens=ctx.loss_tokens,
+                ours_tok_s=ctx.tokens / mo, trl_tok_s=ctx.tokens / mt, ratio=mt / mo,
+                ours_times=times["posttrain"], trl_times=times["trl"], memory=mem)
+
+
+# ------------------------------------------------------------------ section: rm
+
+
+def _rm_setup(args) -> SimpleNamespace:
+    """Our reward-model step and TRL's RewardTrainer over the same S*B pairs (see the module docstring)."""
+    from posttrain import loop
+    from posttrain.losses import bradley_terry_loss
+    from posttrain.models import save_model
+    from posttrain.preferences import check_pairs
+    from posttrain.scoring import rm_appends_eos
+    from posttrain.trainers.reward import load_reward_init, pair_rewards
+
+    B, S, lr, max_len = 16, 6 if args.quick else 16, 1e-4, 256
+    tok = _summarize_tokenizer()
+    pad = tok.pad_token_id
+    _, pairs, _ = check_pairs(_summarize_pairs(S * B), "bench pairs", "error", tok, max_len,
+                              append_eos=rm_appends_eos(tok))
+    tokens = sum(2 * len(p.prompt) + len(p.chosen) + len(p.rejected) for p in pairs)
+    tmp = tempfile.mkdtemp(prefix="posttrain-bench-rm-")
+    save_model(build_model("tiny", tok, seed=0), tok, Path(tmp) / "lm")
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):  # "new head" report
+        base = load_reward_init(Path(tmp) / "lm", pad, 0, args.device)
+
+    def ours() -> float:
+        model = copy.deepcopy(base)
+        accelerator = loop.setup(0)
+        t0 = time.perf_counter()
+        optimizer = loop.build_optimizer(model, lr)
+        scheduler = loop.build_scheduler(optimizer, 0, S, "constant")
+        for step in range(S):
+            def loss_fn(chunk):
+                r = pair_rewards(model, chunk, pad)  # (2b,) chosen then rejected, one forward
+                return bradley_terry_loss(r[: len(chunk)], r[len(chunk):])
+
+            loop.optimizer_step(accelerator, model, optimizer, scheduler, [pairs[step * B:(step + 1) * B]],
+                                loss_fn, 1.0, step + 1)
+        _sync(args.device)
+        return time.perf_counter() - t0
+
+    ctx = SimpleNamespace(B=B, S=S, lr=lr, tokens=tokens, base=base, runners={"posttrain": ours}, trl_error=None,
+                          cleanup=lambda: shutil.rmtree(tmp, ignore_errors=True))
+    try:
+        from datasets import Dataset
+        from trl import RewardConfig as TRLConfig, RewardTrainer
+    except ImportError as e:
+        ctx.trl_error = e
+        return ctx
+    printer = _trl_quiet()
+    data = [{"chosen_ids": p.prompt + p.chosen, "rejected_ids": p.prompt + p.rejected} for p in pairs]
+
+    def trl_run() -> float:
+        targs = TRLConfig(learning_rate=lr, max_length=max_len, disable_dropout=True,
+                          center_rewards_coefficient=None, **_trl_common(args, str(Path(tmp) / "trl"), B))
+        with contextlib.redirect_stderr(io.StringIO()):
+            trainer = RewardTrainer(model=copy.deepcopy(base), args=targs, train_dataset=Dataset.from_list(data),
+                                    processing_class=tok)
+            trainer.remove_callback(printer)
+            t0 = time.perf_counter()
+            out = trainer.train()
+        _sync(args.device)
+        dt = time.perf_counter() - t0
+        assert out.global_step == S, f"TRL ran {out.global_step} steps, expected {S}"
+        assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
+        seen = getattr(trainer, "_total_train_tokens", tokens)
+        assert seen == tokens, f"TRL trained on {seen} non-pad tokens, we on {tokens}"
+        return dt
+
+    ctx.runners["trl"] = trl_run
+    return ctx
+
+
+def bench_rm(args) -> dict:
+    ctx = _rm_setup(args)
+    repeats = 3 if args.quick else 5
+    n = ctx.S * ctx.B
+    print(f"tiny reward model: {count_parameters(ctx.base) / 1e6:.2f}M parameters; {ctx.S} steps x {ctx.B} pairs, "
+          f"{ctx.tokens / n:.0f} tokens per pair (prompt + chosen, prompt + rejected), lr {ctx.lr}")
+    if ctx.trl_error is not None:
+        _trl_missing(ctx.trl_error)
+        t = statistics.median(_alternate(ctx.runners, repeats, args.device)["posttrain"])
+        print(f"ours: {n / t:.1f} pairs/s")
+        ctx.cleanup()
+        return dict(ours_pairs_s=n / t)
+    times = _alternate(ctx.runners, repeats, args.device)
+    mo, mt = statistics.median(times["posttrain"]), statistics.median(times["trl"])
+    print(f"{'implementation':<44} {'pairs/s':>8} {'tokens/s':>9} {'s/step':>7} {'ratio':>7}")
+    print(f"{'TRL RewardTrainer':<44} {n / mt:>8.1f} {ctx.tokens / mt:>9.0f} {mt / ctx.S:>7.3f} {mt / mo:>6.2f}x")
+    print(f"{'posttrain reward-model step':<44} {n / mo:>8.1f} {ctx.tokens / mo:>9.0f} {mo / ctx.S:>7.3f} {'1.00x':>7}")
+    print("ratio = TRL time / posttrain time for the same pairs, batches and order.")
+    mem = peak_memory("rm", ["posttrain", "trl"], args)
+    print_memory(mem, {"posttrain": "posttrain reward-model step", "trl": "TRL RewardTrainer"})
+    ctx.cleanup()
+    return dict(batch=ctx.B, steps=ctx.S, tokens=ctx.tokens, ours_pairs_s=n / mo, trl_pairs_s=n / mt,
+                ratio=mt / mo, ours_times=times["posttrain"], trl_times=times["trl"], memory=mem)
 
 
 # ------------------------------------------------------------------ section: dpo
 
 
-def _summarize_pairs(n: int, seed: int = 0) -> list[dict]:
-    """n preference rows from the tiny-summarize generator: chosen = the reference summary, rejected =
-    another document's summary (realistic lengths; the labels do not matter for throughput)."""
-    from posttrain.tasks import get_task
-
-    ex = get_task("tiny-summarize").make_examples(n + 1, seed, "train")
-    return [{"prompt": ex[i]["prompt"], "chosen": ex[i]["completion"], "rejected": ex[i + 1]["completion"],
-             "_row": i + 1} for i in range(n)]
-
-
-def bench_dpo(args) -> dict:
+def _dpo_setup(args) -> SimpleNamespace:
     """Our DPO training loop against TRL's DPOTrainer on the same tiny model, pairs, batch and lr.
 
     Both train one pass over the same S*B pairs (S steps of B pairs), so they process exactly the same
@@ -187,29 +597,21 @@ def bench_dpo(args) -> dict:
     from the reference precompute (the SFT model's log-probs of every pair, done once) to the last
     optimizer step; TRL's from `trainer.train()` to its return (its reference model runs every step,
     its default); with precompute_ref_log_probs=True (second row) TRL computes them in its constructor, so
-    a second, identical precompute pass is timed alone and added to its train() time. TRL is configured for this CPU: fp32 (bf16=False), gradient_checkpointing=False,
-    no logging / saving / eval. Each side runs once untimed first (warm-up); runs alternate; medians.
+    a second, identical precompute pass is timed alone and added to its train() time. TRL is configured for
+    this CPU: fp32 (bf16=False), gradient_checkpointing=False, no logging / saving / eval, our batch order.
     """
-    import copy
-    import tempfile
-
     from posttrain import loop
     from posttrain.preferences import check_pairs, collate_pairs
-    from posttrain.tasks import tokenizer_corpus
-    from posttrain.config import TaskConfig
     from posttrain.trainers.dpo import DPOConfig, pair_logps, pair_loss, reference_logps
 
     B = args.dpo_batch
     S = 6 if args.quick else 16
-    repeats = 3 if args.quick else 5
     max_len = 256
-    tok = train_tokenizer(tokenizer_corpus(TaskConfig(name="tiny-summarize", n_train=2000)), vocab_size=1024)
+    tok = _summarize_tokenizer()
     rows = _summarize_pairs(S * B)
     _, pairs, _ = check_pairs(rows, "bench pairs", "error", tok, max_len)
     tokens = sum(2 * len(p.prompt) + len(p.chosen) + len(p.rejected) for p in pairs)
     base = build_model("tiny", tok, seed=0).to(args.device)
-    print(f"tiny: {count_parameters(base) / 1e6:.2f}M parameters; {S} steps x {B} pairs, "
-          f"{tokens / len(pairs):.0f} tokens per pair (prompt twice + chosen + rejected), lr 1e-4, beta 0.1")
     cfg = DPOConfig(batch_size=B, lr=1e-4, beta=0.1)
     pad = tok.pad_token_id
 
@@ -233,30 +635,22 @@ def bench_dpo(args) -> dict:
         _sync(args.device)
         return time.perf_counter() - t0
 
+    ctx = SimpleNamespace(B=B, S=S, tokens=tokens, n_pairs=len(pairs), base=base, runners={"posttrain": ours},
+                          trl_error=None)
     try:
         import trl  # noqa: F401
         from datasets import Dataset
-        from transformers import logging as hf_logging
         from trl import DPOConfig as TRLConfig, DPOTrainer
     except ImportError as e:
-        print(f"TRL not installed ({e}); `pip install -e '.[bench]'` to compare. Ours alone:")
-        t = statistics.median(ours() for _ in range(repeats + 1))
-        print(f"ours: {tokens / t:.0f} tokens/s")
-        return dict(ours_tok_s=tokens / t)
-    hf_logging.set_verbosity_error()
-    import datasets
-    from transformers.trainer_callback import PrinterCallback
-
-    datasets.disable_progress_bars()
+        ctx.trl_error = e
+        return ctx
+    printer = _trl_quiet()
     data = [{k: r[k] for k in ("prompt", "chosen", "rejected")} for r in rows]
     tmp = tempfile.mkdtemp(prefix="posttrain-bench-trl-")
 
     def trl_run(precompute: bool = False) -> float:
-        targs = TRLConfig(precompute_ref_log_probs=precompute, precompute_ref_batch_size=B, output_dir=tmp, per_device_train_batch_size=B, num_train_epochs=1, learning_rate=1e-4,
-                          lr_scheduler_type="constant", beta=0.1, max_length=max_len, bf16=False, fp16=False,
-                          gradient_checkpointing=False, use_cpu=args.device == "cpu", logging_strategy="no",
-                          save_strategy="no", eval_strategy="no", report_to=[], disable_tqdm=True,
-                          dataloader_num_workers=0, seed=0)
+        targs = TRLConfig(precompute_ref_log_probs=precompute, precompute_ref_batch_size=B, learning_rate=1e-4,
+                          beta=0.1, max_length=max_len, **_trl_common(args, tmp, B))
         ref = None if precompute else copy.deepcopy(base).eval()
         train_data = Dataset.from_list(data)
         train_data._fingerprint = f"posttrain-bench-{time.time_ns()}"  # no reuse of TRL's cached reference log-probs
@@ -264,7 +658,7 @@ def bench_dpo(args) -> dict:
         with contextlib.redirect_stderr(io.StringIO()):  # TRL's own progress bars
             trainer = DPOTrainer(model=model, ref_model=ref, args=targs, train_dataset=train_data,
                                  processing_class=tok)
-            trainer.remove_callback(PrinterCallback)
+            trainer.remove_callback(printer)
             t_pre = 0.0
             if precompute:  # TRL ran it in the constructor (with dataset bookkeeping): time one more pass alone
                 ds = trainer.train_dataset.remove_columns(["ref_chosen_logps", "ref_rejected_logps"])
@@ -277,31 +671,184 @@ def bench_dpo(args) -> dict:
         _sync(args.device)
         dt = time.perf_counter() - t0
         assert out.global_step == S, f"TRL ran {out.global_step} steps, expected {S}"
+        assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
         return dt
 
-    ours(), trl_run(), trl_run(True)  # warm-up
-    t_ours, t_trl, t_trl_pre = [], [], []
-    for _ in range(repeats):
-        t_trl.append(trl_run())
-        t_ours.append(ours())
-        t_trl_pre.append(trl_run(True))
+    ctx.runners.update(trl=trl_run, trl_precompute=lambda: trl_run(True))
+    ctx.cleanup = lambda: shutil.rmtree(tmp, ignore_errors=True)
+    return ctx
+
+
+def bench_dpo(args) -> dict:
+    ctx = _dpo_setup(args)
+    S, B, tokens = ctx.S, ctx.B, ctx.tokens
+    repeats = 3 if args.quick else 5
+    print(f"tiny: {count_parameters(ctx.base) / 1e6:.2f}M parameters; {S} steps x {B} pairs, "
+          f"{tokens / ctx.n_pairs:.0f} tokens per pair (prompt twice + chosen + rejected), lr 1e-4, beta 0.1")
+    if ctx.trl_error is not None:
+        _trl_missing(ctx.trl_error)
+        t = statistics.median(_alternate(ctx.runners, repeats, args.device)["posttrain"])
+        print(f"ours: {tokens / t:.0f} tokens/s")
+        return dict(ours_tok_s=tokens / t)
+    times = _alternate({k: ctx.runners[k] for k in ("trl", "posttrain", "trl_precompute")}, repeats, args.device)
+    t_ours, t_trl, t_trl_pre = times["posttrain"], times["trl"], times["trl_precompute"]
     mo, mt, mp = statistics.median(t_ours), statistics.median(t_trl), statistics.median(t_trl_pre)
-    row = dict(batch=B, steps=S, tokens=tokens, ours_tok_s=tokens / mo, trl_tok_s=tokens / mt,
-               trl_precompute_tok_s=tokens / mp, ratio=mt / mo, ratio_vs_trl_precompute=mp / mo,
-               ours_times=t_ours, trl_times=t_trl, trl_precompute_times=t_trl_pre)
     print(f"{'implementation':<44} {'tokens/s':>9} {'s/step':>7} {'ratio':>7}")
     print(f"{'TRL DPOTrainer, live reference (its default)':<44} {tokens / mt:>9.0f} {mt / S:>7.3f} "
           f"{mt / mo:>6.2f}x")
     print(f"{'TRL DPOTrainer, precompute_ref_log_probs':<44} {tokens / mp:>9.0f} {mp / S:>7.3f} {mp / mo:>6.2f}x")
     print(f"{'posttrain DPO loop (reference precomputed)':<44} {tokens / mo:>9.0f} {mo / S:>7.3f} {'1.00x':>7}")
     print("ratio = TRL time / posttrain time for the same pairs (both include their reference log-probs).")
-    return row
+    impls = ["posttrain", "trl"] + ([] if args.quick else ["trl_precompute"])
+    mem = peak_memory("dpo", impls, args)
+    print_memory(mem, {"posttrain": "posttrain DPO loop", "trl": "TRL DPOTrainer, live reference",
+                       "trl_precompute": "TRL DPOTrainer, precompute_ref_log_probs"})
+    ctx.cleanup()
+    return dict(batch=B, steps=S, tokens=tokens, ours_tok_s=tokens / mo, trl_tok_s=tokens / mt,
+                trl_precompute_tok_s=tokens / mp, ratio=mt / mo, ratio_vs_trl_precompute=mp / mo,
+                ours_times=t_ours, trl_times=t_trl, trl_precompute_times=t_trl_pre, memory=mem)
+
+
+# ------------------------------------------------------------------ section: ppo
+
+
+def _trl_ppo_status() -> str | None:
+    """Where an importable TRL PPOTrainer lives, or None (TRL missing, or a version without one)."""
+    import importlib
+    import warnings
+
+    for mod in ("trl", "trl.experimental.ppo"):
+        try:
+            with warnings.catch_warnings():  # importing trl.experimental warns that it is experimental
+                warnings.simplefilter("ignore")
+                if hasattr(importlib.import_module(mod), "PPOTrainer"):
+                    return f"{mod}.PPOTrainer"
+        except ImportError:
+            pass
+    return None
+
+
+def _ppo_setup(args) -> SimpleNamespace:
+    """`posttrain ppo` through the CLI on a throwaway recipe; the scorer timed through a wrapper.
+
+    Random-init tiny policy (= SFT model) and a reward model made of the same transformer under a seeded
+    one-output head (value_init=reward copies it), tiny-summarize prompts, rollout batch 16 (quick) / 32,
+    minibatch 8, 2 PPO epochs, <= max_new_tokens new tokens (a random model rarely samples eos), reward
+    normalisation per batch (no initial sampling pass), no evaluation. The trainer logs time/rollout_s and
+    time/iteration_s per iteration; scoring is timed by wrapping the scorer that `ppo.reward_scorer` returns
+    (instrumentation only: the trainer's code is unchanged).
+    """
+    import posttrain.trainers.ppo as ppo_mod
+    from posttrain.cli import main as posttrain_main
+    from posttrain.models import save_model
+    from posttrain.trainers.reward import load_reward_init
+
+    iters = 4 if args.quick else 8
+    rollout, minibatch, epochs = (16 if args.quick else 32), 8, 2
+    root = Path(tempfile.mkdtemp(prefix="posttrain-bench-ppo-"))
+    tok = _summarize_tokenizer()
+    base = build_model("tiny", tok, seed=0)
+    save_model(base, tok, root / "model")
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):  # "new head" report
+        save_model(load_reward_init(root / "model", tok.pad_token_id, 0, "cpu"), tok, root / "rm")
+    sft = root / "runs" / "bench-ppo" / "sft" / "final"
+    sft.parent.mkdir(parents=True)
+    shutil.copytree(root / "model", sft)
+    recipe = root / "bench-ppo.yaml"
+    recipe.write_text(f"""# PPO iteration benchmark (scripts/bench.py); posttrain ppo --recipe this file
+task: {{name: tiny-summarize, n_train: 64, n_eval: 8}}
+model: {{path: {root / 'model'}, max_length: 256}}
+ppo:
+  reward_model: {root / 'rm'}
+  rollout_batch_size: {rollout}
+  minibatch_size: {minibatch}
+  ppo_epochs: {epochs}
+  max_new_tokens: {args.max_new_tokens}
+  reward_norm: batch
+  eval_every: 0
+  eval_rows: 0
+  final_eval_rows: 0
+  save_every: 0
+""")
+
+    def ours() -> list[dict[str, float]]:
+        score_times: list[float] = []
+        original = ppo_mod.reward_scorer
+
+        def timed_reward_scorer(*a, **k):
+            scorer = original(*a, **k)
+            inner = scorer.score
+
+            def score(*a2, **k2):
+                t0 = time.perf_counter()
+                out = inner(*a2, **k2)
+                score_times.append(time.perf_counter() - t0)
+                return out
+
+            scorer.score = score
+            return scorer
+
+        ppo_mod.reward_scorer = timed_reward_scorer
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):
+                rc = posttrain_main(["ppo", "--recipe", str(recipe), f"run.output_dir={root / 'runs'}",
+                                     f"run.threads={args.threads}", "run.quiet=true", f"max_steps={iters}"])
+        finally:
+            ppo_mod.reward_scorer = original
+        assert rc == 0, "posttrain ppo failed"
+        rows = [json.loads(l) for l in (root / "runs" / "bench-ppo" / "ppo" / "metrics.jsonl").read_text().splitlines()]
+        rows = [r for r in rows if "time/iteration_s" in r]
+        assert len(rows) == iters == len(score_times), (len(rows), iters, len(score_times))
+        return [{"iteration": r["time/iteration_s"], "rollout": r["time/rollout_s"], "scoring": s,
+                 "update": r["time/iteration_s"] - r["time/rollout_s"] - s, "length": r["rollout/length"]}
+                for r, s in zip(rows, score_times)][1:]  # the first iteration is warm-up
+
+    return SimpleNamespace(iters=iters, rollout=rollout, minibatch=minibatch, epochs=epochs, base=base,
+                           runners={"posttrain": ours}, cleanup=lambda: shutil.rmtree(root, ignore_errors=True))
+
+
+def bench_ppo(args) -> dict:
+    ctx = _ppo_setup(args)
+    rounds = 1 if args.quick else 2
+    n_mb = ctx.rollout // ctx.minibatch
+    print(f"tiny policy, value and reward models ({count_parameters(ctx.base) / 1e6:.2f}M parameters each); "
+          f"{ctx.rollout} prompts x 1 completion x <= {args.max_new_tokens} tokens per iteration, {ctx.epochs} epochs "
+          f"x {n_mb} minibatches of {ctx.minibatch}; {ctx.iters} iterations per run ({rounds} run(s), first excluded)")
+    its: list[dict[str, float]] = []
+    for _ in range(rounds):
+        its += ctx.runners["posttrain"]()
+    med = {k: statistics.median(i[k] for i in its) for k in ("iteration", "rollout", "scoring", "update", "length")}
+    print(f"{'phase (medians)':<58} {'s/iter':>7} {'share':>6}")
+    for k, what in (("rollout", "rollout (engine sampling)"), ("scoring", "scoring (reward model on the text)"),
+                    ("update", "update (old/ref/value forwards, GAE, PPO minibatches)")):
+        print(f"{what:<58} {med[k]:>7.3f} {100 * med[k] / med['iteration']:>5.0f}%")
+    print(f"{'posttrain ppo iteration':<58} {med['iteration']:>7.3f}")
+    print(f"{ctx.rollout * med['length'] / med['iteration']:.0f} completion tokens/s over the whole iteration "
+          f"({med['length']:.1f} tokens per completion)")
+    where = _trl_ppo_status()
+    if where is None:
+        history = ("TRL moved PPOTrainer to trl.experimental.ppo in 1.10 (huggingface/trl#4482) and later deleted "
+                   "it (huggingface/trl#7020)")
+        try:
+            import trl
+            why = f"TRL {trl.__version__} has no PPO trainer: {history}"
+        except ImportError:
+            why = f"TRL is not installed, and its current releases have no PPO trainer anyway: {history}"
+    else:
+        why = (f"{where} exists in this TRL, but this section has no driver for it (its API takes pre-tokenized "
+               "prompts and value-head models); nothing was measured against it")
+    print(f"no TRL baseline, no ratio: {why}.")
+    mem = peak_memory("ppo", ["posttrain"], args)
+    print_memory(mem, {"posttrain": "posttrain ppo (policy, reference, value, reward)"})
+    ctx.cleanup()
+    return dict(rollout_batch=ctx.rollout, minibatch=ctx.minibatch, ppo_epochs=ctx.epochs, s_per_iteration=med,
+                iterations=its, trl_baseline=None, no_baseline_reason=why, memory=mem)
 
 
 # ------------------------------------------------------------------ section: grpo
 
 
-def bench_grpo(args) -> dict:
+def _grpo_setup(args) -> SimpleNamespace:
     """A GRPO step of `posttrain grpo` (the trainer itself, run through the CLI) against one of TRL's GRPOTrainer.
 
     Same random-init tiny model and tokenizer (vocabulary 1024), the same 64 prompts of 20 words, 2 prompts x
@@ -314,17 +861,12 @@ def bench_grpo(args) -> dict:
     generation happens inside the step). The first 2 steps of every run are warm-up and excluded; runs
     alternate; medians over all remaining steps.
     """
-    import contextlib
-    import io
-    import shutil
-    import tempfile
-
+    import posttrain.trainers.grpo  # noqa: F401  (imported before any memory baseline, as the CLI would)
     from posttrain.cli import main as posttrain_main
     from posttrain.models import save_model
     from verifiers.format import LengthVerifier
 
     steps = 8 if args.quick else 14
-    rounds = 1 if args.quick else 2
     root = Path(tempfile.mkdtemp(prefix="posttrain-bench-grpo-"))
     corpus = _corpus(300)
     tok = train_tokenizer(corpus, vocab_size=1024)
@@ -355,8 +897,6 @@ grpo:
     sft = root / "runs" / "bench-grpo" / "sft" / "final"
     sft.parent.mkdir(parents=True)
     shutil.copytree(root / "model", sft)
-    print(f"tiny: {count_parameters(base) / 1e6:.2f}M parameters; 2 prompts x 8 completions x <= {args.max_new_tokens} "
-          f"tokens per step, {steps} steps per run ({rounds} run(s) each, first 2 steps excluded)")
 
     def ours() -> tuple[list[float], dict[str, float]]:
         with contextlib.redirect_stdout(io.StringIO()):
@@ -369,21 +909,16 @@ grpo:
         phases["completion_tokens"] = statistics.mean(r["completion/length"] for r in rows)
         return [r["time/step"] for r in rows], phases
 
+    ctx = SimpleNamespace(steps=steps, base=base, runners={"posttrain": ours}, trl_error=None,
+                          cleanup=lambda: shutil.rmtree(root, ignore_errors=True))
     try:
         from datasets import Dataset
         from transformers import TrainerCallback
-        from transformers import logging as hf_logging
-        from transformers.trainer_callback import PrinterCallback
         from trl import GRPOConfig as TRLConfig, GRPOTrainer
     except ImportError as e:
-        print(f"TRL not installed ({e}); `pip install -e '.[bench]'` to compare. Ours alone:")
-        t, phases = ours()
-        print(f"ours: {statistics.median(t):.3f} s/step ({phases})")
-        return dict(ours_s_per_step=statistics.median(t), ours_phases=phases)
-    hf_logging.set_verbosity_error()
-    import datasets
-
-    datasets.disable_progress_bars()
+        ctx.trl_error = e
+        return ctx
+    printer = _trl_quiet()
     length = LengthVerifier(max_chars=150)
 
     def length_reward(completions, **kwargs):
@@ -391,7 +926,7 @@ grpo:
 
     class StepTimer(TrainerCallback):
         def __init__(self):
-            self.times, self.t0, self.tokens = [], 0.0, []
+            self.times, self.t0 = [], 0.0
 
         def on_step_begin(self, *a, **k):
             self.t0 = time.perf_counter()
@@ -401,12 +936,10 @@ grpo:
             self.times.append(time.perf_counter() - self.t0)
 
     def trl_run() -> list[float]:
-        import copy
-
         targs = TRLConfig(output_dir=str(root / "trl"), per_device_train_batch_size=16, num_generations=8,
                           max_completion_length=args.max_new_tokens, temperature=1.0, beta=0.0, num_iterations=1,
                           learning_rate=1e-4, lr_scheduler_type="constant", max_grad_norm=1.0, max_steps=steps,
-                          bf16=False, fp16=False, gradient_checkpointing=False, use_cpu=args.device == "cpu",
+                          bf16=False, fp16=False, **_no_checkpointing(), use_cpu=args.device == "cpu",
                           logging_strategy="no", save_strategy="no", report_to=[], disable_tqdm=True,
                           dataloader_num_workers=0, seed=0)
         timer = StepTimer()
@@ -414,16 +947,33 @@ grpo:
             trainer = GRPOTrainer(model=copy.deepcopy(base), reward_funcs=[length_reward], args=targs,
                                   train_dataset=Dataset.from_list([{"prompt": p} for p in prompts]),
                                   processing_class=tok, callbacks=[timer])
-            trainer.remove_callback(PrinterCallback)
+            trainer.remove_callback(printer)
             out = trainer.train()
         assert out.global_step == steps, f"TRL ran {out.global_step} steps, expected {steps}"
+        assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
         return timer.times[2:]
 
+    ctx.runners["trl"] = trl_run
+    return ctx
+
+
+def bench_grpo(args) -> dict:
+    ctx = _grpo_setup(args)
+    steps = ctx.steps
+    rounds = 1 if args.quick else 2
+    print(f"tiny: {count_parameters(ctx.base) / 1e6:.2f}M parameters; 2 prompts x 8 completions x <= "
+          f"{args.max_new_tokens} tokens per step, {steps} steps per run ({rounds} run(s) each, first 2 steps excluded)")
+    if ctx.trl_error is not None:
+        _trl_missing(ctx.trl_error)
+        t, phases = ctx.runners["posttrain"]()
+        print(f"ours: {statistics.median(t):.3f} s/step ({phases})")
+        ctx.cleanup()
+        return dict(ours_s_per_step=statistics.median(t), ours_phases=phases)
     t_ours, t_trl, phases = [], [], {}
     for _ in range(rounds):  # alternate, so drifting load hits both
-        t, phases = ours()
+        t, phases = ctx.runners["posttrain"]()
         t_ours += t
-        t_trl += trl_run()
+        t_trl += ctx.runners["trl"]()
     mo, mt = statistics.median(t_ours), statistics.median(t_trl)
     print(f"{'implementation':<58} {'s/step':>7} {'ratio':>7}")
     print(f"{'TRL GRPOTrainer (fp32, no gradient checkpointing)':<58} {mt:>7.3f} {mt / mo:>6.2f}x")
@@ -431,31 +981,129 @@ grpo:
     print(f"posttrain phases (medians): sample {phases['sample']:.3f} s, score {phases['score']:.3f} s, "
           f"update {phases['train']:.3f} s; {phases['completion_tokens']:.1f} completion tokens per row")
     print("ratio = TRL time per step / posttrain time per step, same model, prompts, group size and budget.")
-    shutil.rmtree(root, ignore_errors=True)
+    mem = peak_memory("grpo", ["posttrain", "trl"], args)
+    print_memory(mem, {"posttrain": f"posttrain grpo ({steps} steps)", "trl": f"TRL GRPOTrainer ({steps} steps)"})
+    ctx.cleanup()
     return dict(steps_per_run=steps, rounds=rounds, ours_s_per_step=mo, trl_s_per_step=mt, ratio=mt / mo,
-                ours_phases=phases, ours_times=t_ours, trl_times=t_trl)
+                ours_phases=phases, ours_times=t_ours, trl_times=t_trl, memory=mem)
+
+
+# ------------------------------------------------------------------ section: scaling
+
+
+def bench_scaling(args) -> dict:
+    """Cost against model size and sequence length: the rollout engine and a training step (module docstring)."""
+    from posttrain import loop
+    from posttrain.logprobs import sequence_logprobs
+
+    peak = matmul_peak(args)
+    repeats = 3 if args.quick else 5
+    gen_batch, prompt_len, train_batch = 16, 32, 8
+    gen_lens = (64, 128) if args.quick else (64, 128, 256)
+    train_lens = (64, 128, 256)
+    corpus = _corpus(300)
+    tok = train_tokenizer(corpus, vocab_size=1024)
+    enc = [tok(c)["input_ids"] for c in corpus]
+    prompts = [enc[i][:prompt_len] for i in range(gen_batch)]
+    assert all(len(p) == prompt_len for p in prompts)
+    print(f"generate: batch {gen_batch}, {prompt_len}-token prompts, sampling at temperature 1 (eos ignored); "
+          f"train: batch {train_batch} unpadded rows, LM loss on every token, forward + backward + AdamW step; "
+          f"medians of {repeats} after a warm-up")
+    print(f"{'preset':<6} {'params':>7} {'kind':<8} {'length':>6} {'s/call':>8} {'tokens/s':>9} {'x len':>6} "
+          f"{'x size':>6} {'GFLOP/s':>8} {'% of matmul':>11}")
+    rows, first = [], {}
+    for preset in args.presets:
+        model = build_model(preset, tok, seed=0).to(args.device)
+        n_params = count_parameters(model)
+        model.eval()
+        for M in gen_lens:
+            def engine(seed=0):
+                return generate(model, tok, prompts, max_new_tokens=M, temperature=1.0, ignore_eos=True, seed=seed)
+
+            engine()  # warm-up
+            t = statistics.median(_timed(lambda: engine(r), args.device) for r in range(repeats))
+            rows.append(dict(preset=preset, params=n_params, kind="generate", length=M, seconds=t,
+                             tok_s=gen_batch * M / t, gflops=generation_flops(model, [prompt_len] * gen_batch, M) / t / 1e9))
+        accelerator = loop.setup(0)
+        optimizer = loop.build_optimizer(model, 1e-4)
+        scheduler = loop.build_scheduler(optimizer, 0, 10 ** 6, "constant")
+        g = torch.Generator().manual_seed(0)
+        for T in train_lens:
+            ids = torch.randint(3, len(tok), (train_batch, T), generator=g).to(args.device)
+            batch = {"input_ids": ids, "attention_mask": torch.ones_like(ids)}
+
+            def loss_fn(mb):
+                logps, _ = sequence_logprobs(model, mb["input_ids"], mb["attention_mask"])  # (B, T), col 0 = 0
+                return -logps.sum() / (train_batch * (T - 1)), {}
+
+            def step():
+                loop.optimizer_step(accelerator, model, optimizer, scheduler, [batch], loss_fn, 1.0, 0)
+
+            step()  # warm-up
+            t = statistics.median(_timed(step, args.device) for _ in range(repeats))
+            rows.append(dict(preset=preset, params=n_params, kind="train", length=T, seconds=t,
+                             tok_s=train_batch * T / t, gflops=training_flops(model, train_batch, T) / t / 1e9))
+        del model, optimizer
+        for r in rows:
+            if r["preset"] != preset:
+                continue
+            first.setdefault((preset, r["kind"]), r["seconds"])
+            r["x_length"] = r["seconds"] / first[(preset, r["kind"])]
+            ref = next((q for q in rows if q["preset"] == args.presets[0] and q["kind"] == r["kind"]
+                        and q["length"] == r["length"]), None)
+            r["x_size"] = r["seconds"] / ref["seconds"]
+            r["pct_of_matmul"] = 100 * r["gflops"] / peak
+            print(f"{preset:<6} {n_params / 1e6:>6.1f}M {r['kind']:<8} {r['length']:>6} {r['seconds']:>8.3f} "
+                  f"{r['tok_s']:>9.0f} {r['x_length']:>5.2f}x {r['x_size']:>5.2f}x {r['gflops']:>8.1f} "
+                  f"{r['pct_of_matmul']:>10.1f}%", flush=True)
+    if any(r["pct_of_matmul"] > 100 for r in rows):
+        print("note: above 100% of the matmul rate means the matmul probe ran slower than the section (other load "
+              "during the probe); rerun on an idle machine.")
+    print(f"length = new tokens (generate) or tokens per row (train); tokens/s counts new tokens (generate) or all "
+          f"tokens (train); x len = time / time at the shortest length, same preset; x size = time / "
+          f"{args.presets[0]}'s at the same length.")
+    return dict(matmul_gflops=peak, gen_batch=gen_batch, prompt_len=prompt_len, train_batch=train_batch, rows=rows)
 
 
 SECTIONS = {
     "generate": bench_generate,
+    "sft": bench_sft,
+    "rm": bench_rm,
     "dpo": bench_dpo,
+    "ppo": bench_ppo,
     "grpo": bench_grpo,
+    "scaling": bench_scaling,
+}
+
+# section -> its setup (shared data and models, `runners`: implementation -> workload), for --memory-probe
+SETUPS = {
+    "generate": _generate_setup,
+    "sft": _sft_setup,
+    "rm": _rm_setup,
+    "dpo": _dpo_setup,
+    "ppo": _ppo_setup,
+    "grpo": _grpo_setup,
 }
 
 
 def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="fewer repeats and a smaller matmul probe (< 2 min)")
+    ap.add_argument("--quick", action="store_true", help="every section, fewer steps and repeats (< 3 min)")
     ap.add_argument("--only", action="append", choices=sorted(SECTIONS), help="run only these sections")
     ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--presets", default="tiny,small", help="comma-separated model presets")
-    ap.add_argument("--batches", default="1,16,64", help="comma-separated batch sizes")
+    ap.add_argument("--presets", default="tiny,small", help="comma-separated model presets (generate, scaling)")
+    ap.add_argument("--batches", default="1,16,64", help="comma-separated batch sizes (generate)")
     ap.add_argument("--max-new-tokens", type=int, default=64)
-    ap.add_argument("--repeats", type=int, default=None, help="timed runs per implementation (default 5 quick, 9)")
+    ap.add_argument("--repeats", type=int, default=None, help="timed runs per implementation in generate "
+                                                              "(default 5 quick, 9)")
     ap.add_argument("--dpo-batch", type=int, default=8, help="pairs per step in the dpo section (default 8)")
+    ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory probes (fresh processes)")
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
+    ap.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # SECTION:IMPL, internal
     args = ap.parse_args(argv)
+    args.argv = [a for a in argv]
     args.presets = [p for p in args.presets.split(",") if p]
     unknown = [p for p in args.presets if p not in PRESETS]
     if unknown:
@@ -463,6 +1111,12 @@ def main(argv=None) -> int:
     args.batches = [int(b) for b in args.batches.split(",") if b]
     args.repeats = args.repeats or (5 if args.quick else 9)
     torch.set_num_threads(args.threads)
+    from transformers import logging as hf_logging
+
+    hf_logging.set_verbosity_error()  # load reports ("score.weight newly initialized") and deprecation notes
+    hf_logging.disable_progress_bar()  # "Writing model shards" when the setups save models
+    if args.memory_probe:
+        return _memory_probe(args.memory_probe, args)
     print(f"posttrain bench: torch {torch.__version__}, {platform.processor() or platform.machine()}, "
           f"{torch.get_num_threads()} threads, device {args.device}, {'quick' if args.quick else 'full'}; "
           f"load average {_load()}")
@@ -470,7 +1124,10 @@ def main(argv=None) -> int:
     results = {}
     for name in args.only or list(SECTIONS):
         print(f"\n== {name} ==")
+        t_sec = time.perf_counter()
         results[name] = SECTIONS[name](args)
+        results[name]["section_seconds"] = time.perf_counter() - t_sec
+        print(f"({name}: {results[name]['section_seconds']:.0f} s)")
     print(f"\ntotal {time.perf_counter() - t0:.0f} s; load average {_load()}")
     if os.getloadavg()[0] > 1.5:
         print("note: other processes were using the CPU; with shared cores, OpenMP threads stall at barriers "
