@@ -99,6 +99,11 @@ def pass_at_k(n: int, c: int, k: int) -> float:
     return 1.0 - math.comb(n - c, k) / math.comb(n, k)
 
 
+def mixed_probability(n: int, c: int, k: int) -> float:
+    """Probability that k of n samples (c right), drawn without replacement, are neither all right nor all wrong."""
+    return 1.0 - (math.comb(n - c, k) + math.comb(c, k)) / math.comb(n, k)
+
+
 def majority_correct(votes: list[tuple[str | None, bool]]) -> float:
     """Credit of a majority vote over (answer key, right?) pairs: 1 if the right answer has the most votes,
     1/t if it ties with t-1 others, else 0. Samples without an answer do not vote."""
@@ -160,13 +165,22 @@ def evaluate_model(model_dir: Path, rows: list[dict], max_new_tokens: int, pool,
     g_len = [len(r.completion_ids) for r in greedy]
     s_len = [len(r.completion_ids) for r in samples]
     n_right = [sum(ok for _, ok in p) for p in per_problem]
+    by_question = {}
+    for name, want in (("direct-style question", True), ("other questions", False)):
+        idx = [i for i, r in enumerate(rows) if (r["meta"]["template"][1] == task.DIRECT_QUESTION) == want]
+        if idx:
+            by_question[name] = {"n": len(idx), "greedy_accuracy": sum(g_right[i] for i in idx) / len(idx),
+                                 "greedy_worked": sum(task.is_worked(greedy[i].text) for i in idx) / len(idx),
+                                 "worked_accuracy": (sum(g_right[i] for i in idx if task.is_worked(greedy[i].text))
+                                                     / max(1, sum(task.is_worked(greedy[i].text) for i in idx)))}
     out.update({
+        "greedy_by_question": by_question,
         "greedy_accuracy": sum(g_right) / len(rows),
         "sample_accuracy": pass_curve[0],
         "pass_at_k": {k: pass_curve[k - 1] for k in KS},
         "pass_curve": pass_curve,
         "maj_at_k": maj,
-        "frac_mixed_groups_of_8": sum(0 < pass_at_k(n, c, 8) < 1 for c in n_right) / len(rows),
+        "frac_mixed_groups_of_8": sum(mixed_probability(n, c, 8) for c in n_right) / len(rows),
         "frac_some_right_of_16": sum(c > 0 for c in n_right) / len(rows),
         "frac_all_right_of_16": sum(c == n for c in n_right) / len(rows),
         "greedy_tokens_per_problem": sum(g_len) / len(rows),
@@ -176,8 +190,10 @@ def evaluate_model(model_dir: Path, rows: list[dict], max_new_tokens: int, pool,
         "behaviour_greedy": task.behaviour_counts([r.text for r in greedy]),
         "behaviour_samples": task.behaviour_counts([r.text for r in samples]),
         "greedy_reasons": dict(collections.Counter(v.reason for v in g_verdicts).most_common()),
+        # the first held-out problems asking the direct-style question, where SFT and GRPO behave differently
         "examples": [{"prompt": r["prompt"], "greedy": g.text, "right": ok}
-                     for r, g, ok in list(zip(rows, greedy, g_right))[:4]],
+                     for r, g, ok in zip(rows, greedy, g_right)
+                     if r["meta"]["template"][1] == task.DIRECT_QUESTION][:4],
     })
     return out
 
@@ -222,16 +238,18 @@ def rollout_behaviour(run_dir: Path) -> dict:
     from posttrain.rollout import load_rollouts
     from posttrain.tasks import math as task
 
-    steps, ver, cor, length = [], [], [], []
+    steps, worked, ver, cor, length = [], [], [], [], []
     for path in sorted((run_dir / "rollouts").glob("step-*.jsonl")):
         rollouts = load_rollouts(path)
         texts = [r.text for r in rollouts]
         b = task.behaviour_counts(texts)
         steps.append(int(path.stem.split("-")[1]))
+        worked.append(b["frac_worked"])
         ver.append(b["frac_verification"])
         cor.append(b["frac_self_correction"])
         length.append(sum(len(r.completion_ids) for r in rollouts) / max(1, len(rollouts)))
-    return {"steps": steps, "frac_verification": ver, "frac_self_correction": cor, "length": length}
+    return {"steps": steps, "frac_worked": worked, "frac_verification": ver, "frac_self_correction": cor,
+            "length": length}
 
 
 def sft_cost(run_dir: Path, rows: list[dict], tokenizer_dir: Path) -> dict:
@@ -296,13 +314,20 @@ def compute_table(res: dict) -> dict:
     # Matched inference compute: how many SFT samples does the oracle / majority vote need to reach GRPO greedy?
     k_oracle = interpolate_k(sft["pass_curve"], grpo["greedy_accuracy"])
     best_maj = max(KS, key=lambda k: sft["maj_at_k"][k])
+    maj_tokens = best_maj * sft["sample_tokens_per_sample"] if best_maj > 1 else sft["greedy_tokens_per_problem"]
+    maj_extra = maj_tokens - grpo["greedy_tokens_per_problem"]
+    maj_extra_s = best_maj * per_sample_s - grpo["greedy_seconds"] / rows
     extra = None
     if k_oracle is not None:
         extra = k_oracle * sft["sample_tokens_per_sample"] - grpo["greedy_tokens_per_problem"]
     return {
         "routes": routes,
         "sft_oracle_k_matching_grpo_greedy": k_oracle,
-        "sft_best_majority": {"k": best_maj, "accuracy": sft["maj_at_k"][best_maj]},
+        "sft_best_majority": {"k": best_maj, "accuracy": sft["maj_at_k"][best_maj],
+                              "tokens_per_problem": maj_tokens,
+                              "extra_tokens_per_problem_vs_grpo_greedy": maj_extra,
+                              "break_even_problems_tokens": g["sampled_tokens"] / maj_extra if maj_extra > 0 else None,
+                              "break_even_problems_seconds": sec["grpo"] / maj_extra_s if maj_extra_s > 0 else None},
         "grpo_training_tokens_sampled": g["sampled_tokens"],
         "grpo_training_seconds": sec["grpo"],
         "break_even_problems_tokens": (g["sampled_tokens"] / extra) if extra and extra > 0 else None,
@@ -383,9 +408,10 @@ def plots(res: dict, out: Path) -> dict[str, dict]:
 
     # 4. verification / self-correction phrases
     b = res["behaviour_over_training"]
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
     ax = axes[0]
     if b["steps"]:
+        ax.plot(b["steps"], b["frac_worked"], "^-", color="tab:red", label="works the problem in columns")
         ax.plot(b["steps"], b["frac_verification"], "o-", color="tab:blue", label="'check' (verification)")
         ax.plot(b["steps"], b["frac_self_correction"], "s-", color="tab:gray", label="self-correction words")
     ax.set_xlabel("GRPO step")
@@ -393,11 +419,12 @@ def plots(res: dict, out: Path) -> dict[str, dict]:
     ax.set_title("phrases in GRPO's training samples")
     ax.legend(fontsize=8)
     ax = axes[1]
-    labels = ["greedy\nverification", "samples\nverification", "greedy\nself-corr.", "samples\nself-corr."]
-    before = [sft["behaviour_greedy"]["frac_verification"], sft["behaviour_samples"]["frac_verification"],
-              sft["behaviour_greedy"]["frac_self_correction"], sft["behaviour_samples"]["frac_self_correction"]]
-    after = [grpo["behaviour_greedy"]["frac_verification"], grpo["behaviour_samples"]["frac_verification"],
-             grpo["behaviour_greedy"]["frac_self_correction"], grpo["behaviour_samples"]["frac_self_correction"]]
+    keys = [("greedy", "frac_worked"), ("samples", "frac_worked"), ("greedy", "frac_verification"),
+            ("samples", "frac_verification"), ("greedy", "frac_self_correction"), ("samples", "frac_self_correction")]
+    labels = [f"{who}\n{dict(frac_worked='worked', frac_verification='check', frac_self_correction='self-corr.')[k]}"
+              for who, k in keys]
+    before = [sft[f"behaviour_{who}"][k] for who, k in keys]
+    after = [grpo[f"behaviour_{who}"][k] for who, k in keys]
     x = range(len(labels))
     ax.bar([i - 0.2 for i in x], before, 0.4, label="SFT", color="tab:gray")
     ax.bar([i + 0.2 for i in x], after, 0.4, label="SFT + GRPO", color="tab:red")
@@ -421,6 +448,7 @@ def plots(res: dict, out: Path) -> dict[str, dict]:
         ax.annotate(r["route"], (r["inference_tokens_per_problem"], r["accuracy"]), fontsize=7,
                     xytext=(4, 3), textcoords="offset points")
     ax.set_xscale("log")
+    ax.set_xlim(right=3 * max(r["inference_tokens_per_problem"] for r in c["routes"]))
     ax.set_xlabel("tokens generated per problem at inference (log)")
     ax.set_ylabel("held-out accuracy (no oracle)")
     ax.set_ylim(0, 1)
@@ -457,7 +485,10 @@ def report_md(res: dict) -> str:
     L.append(f"- SFT greedy accuracy **{pct(sft['greedy_accuracy'])}**; after GRPO **{pct(grpo['greedy_accuracy'])}** "
              f"({'+' if gain >= 0 else ''}{100 * gain:.1f} points) after {len(g['steps'])} GRPO steps "
              f"({sec['grpo'] / 60:.1f} min).")
-    if c["sft_oracle_k_matching_grpo_greedy"] is not None:
+    if gain <= 0:
+        L.append("- GRPO did not improve greedy accuracy here, so no sampling budget of the SFT model is needed to "
+                 "match it.")
+    elif c["sft_oracle_k_matching_grpo_greedy"] is not None:
         L.append(f"- The SFT model needs about **K = {c['sft_oracle_k_matching_grpo_greedy']:.1f}** samples with a "
                  f"verifier oracle picking a right one to match one greedy answer of the GRPO model.")
     else:
@@ -465,6 +496,15 @@ def report_md(res: dict) -> str:
                  f"one greedy answer of the GRPO model.")
     L.append(f"- Without an oracle, the SFT model's best majority vote is maj@{c['sft_best_majority']['k']} = "
              f"{pct(c['sft_best_majority']['accuracy'])}, at {c['sft_best_majority']['k']} samples per problem.")
+    bm = c["sft_best_majority"]
+    if bm["break_even_problems_tokens"] and grpo["greedy_accuracy"] >= bm["accuracy"]:
+        L.append(f"- Compute against that realistic baseline: GRPO training sampled {g['sampled_tokens']:,.0f} tokens "
+                 f"in {sec['grpo']:.0f} s; SFT maj@{bm['k']} generates {bm['extra_tokens_per_problem_vs_grpo_greedy']:.0f} "
+                 f"more tokens per problem than one greedy GRPO answer, so GRPO's training pays for itself after about "
+                 f"{bm['break_even_problems_tokens']:,.0f} problems in generated tokens "
+                 + (f"({bm['break_even_problems_seconds']:,.0f} problems in measured seconds)"
+                    if bm["break_even_problems_seconds"] else "")
+                 + f", and is {100 * (grpo['greedy_accuracy'] - bm['accuracy']):.1f} points more accurate.")
     if c["break_even_problems_tokens"]:
         L.append(f"- Compute: GRPO training sampled {g['sampled_tokens']:,.0f} tokens "
                  f"({g['sampled_sequences']:,.0f} completions); matching it by oracle best-of-K costs "
@@ -500,7 +540,8 @@ def report_md(res: dict) -> str:
     L.append("")
     L.append(f"SFT processed {res['sft_cost']['sequences']:,} training sequences ({res['sft_cost']['steps']} steps x "
              f"batch {res['sft_cost']['batch_size']}, {res['sft_cost']['mean_row_tokens']:.0f} tokens each). GRPO sampled "
-             f"{g['sampled_sequences']:,.0f} completions ({g['prompts_per_step']} prompts x {g['group_size']} per step) "
+             f"{g['sampled_sequences']:,.0f} completions ({g['prompts_per_step']} prompts x {g['group_size']} per step, plus "
+             "the resampling rounds of dynamic sampling) "
              f"and trained on {g['trained_sequences']:,.0f} sequences (zero-variance groups are skipped). Inference "
              "seconds are measured in this script's batched generation (all problems at once), single process.\n")
     L.append("![compute](e7_compute.png)\n")
@@ -513,12 +554,15 @@ def report_md(res: dict) -> str:
              f"GRPO {pct(grpo['greedy_truncated'])}.")
     for who, m in (("SFT", sft), ("SFT + GRPO", grpo)):
         bg, bs = m["behaviour_greedy"], m["behaviour_samples"]
-        L.append(f"- {who}: 'check' in {pct(bg['frac_verification'])} of greedy answers and "
+        L.append(f"- {who}: works the problem in columns in {pct(bg['frac_worked'])} of greedy answers and "
+                 f"{pct(bs['frac_worked'])} of samples (the rest state an answer directly); "
+                 f"'check' in {pct(bg['frac_verification'])} of greedy answers and "
                  f"{pct(bs['frac_verification'])} of samples; self-correction words in "
                  f"{pct(bg['frac_self_correction'])} / {pct(bs['frac_self_correction'])}.")
     b = res["behaviour_over_training"]
     if b["steps"]:
-        L.append(f"- In GRPO's saved training rollouts (steps {b['steps'][0]}..{b['steps'][-1]}): 'check' in "
+        L.append(f"- In GRPO's saved training rollouts (steps {b['steps'][0]}..{b['steps'][-1]}): worked in columns "
+                 f"{pct(b['frac_worked'][0])} -> {pct(b['frac_worked'][-1])} of samples; 'check' in "
                  f"{pct(b['frac_verification'][0])} -> {pct(b['frac_verification'][-1])} of samples; self-correction "
                  f"words {pct(b['frac_self_correction'][0])} -> {pct(b['frac_self_correction'][-1])}.")
     L.append("")
@@ -530,12 +574,28 @@ def report_md(res: dict) -> str:
              "behaviour was reported.\n")
     L.append("![length](e7_length.png)\n")
     L.append("![behaviour](e7_behaviour.png)\n")
+    L.append("## Where the gain comes from\n")
+    L.append(f"SFT data answers the question \"How many ... are there now?\" without working in "
+             f"{res['direct_prob']:.0%} of its training rows (all other phrasings are worked). Held-out greedy answers:\n")
+    L.append("| problems | n | SFT accuracy | SFT worked in columns | GRPO accuracy | GRPO worked in columns |")
+    L.append("|---|---|---|---|---|---|")
+    for name, a in sft["greedy_by_question"].items():
+        b2 = grpo["greedy_by_question"][name]
+        L.append(f"| {name} | {a['n']} | {pct(a['greedy_accuracy'])} | {pct(a['greedy_worked'])} | "
+                 f"{pct(b2['greedy_accuracy'])} | {pct(b2['greedy_worked'])} |")
+    L.append("")
+    L.append("Accuracy of the greedy answers that are worked in columns (the arithmetic itself): SFT "
+             + ", ".join(f"{k} {pct(v['worked_accuracy'])}" for k, v in sft["greedy_by_question"].items())
+             + "; GRPO " + ", ".join(f"{k} {pct(v['worked_accuracy'])}" for k, v in grpo["greedy_by_question"].items())
+             + ".\n")
     L.append("## Why held-out greedy answers fail\n")
     for who, m in (("SFT", sft), ("SFT + GRPO", grpo)):
         L.append(f"- {who}: " + ", ".join(f"{k} {v}" for k, v in m["greedy_reasons"].items()))
     L.append("")
-    L.append("## Examples (held-out, greedy)\n")
+    L.append("## Examples (held-out, greedy, a direct-style question)\n")
     for who, m in (("SFT", sft), ("SFT + GRPO", grpo)):
+        if not m["examples"]:
+            continue
         ex = m["examples"][0]
         L.append(f"{who} ({'right' if ex['right'] else 'wrong'}):\n\n```\n{ex['prompt']}{ex['greedy']}\n```\n")
     L.append("## Settings\n")
@@ -566,8 +626,10 @@ def main(argv: list[str] | None = None) -> int:
         import torch
 
         torch.set_num_threads(args.threads)
+    import datasets
     import transformers
 
+    datasets.disable_progress_bars()
     transformers.utils.logging.set_verbosity_error()
     transformers.utils.logging.disable_progress_bar()
 
@@ -575,6 +637,7 @@ def main(argv: list[str] | None = None) -> int:
     from posttrain.config import resolve
     from posttrain.models import count_parameters, load_model
     from posttrain.tasks import load_split
+    from posttrain.tasks import math as task_module
     from verifiers.runner import VerifierPool
 
     t_all = time.time()
@@ -637,7 +700,7 @@ def main(argv: list[str] | None = None) -> int:
     res = {
         "quick": args.quick, "overrides": args.overrides, "threads": args.threads, "eval_rows": len(rows),
         "preset": res_eval.model.path, "parameters": count_parameters(load_model(run_root / "sft" / "final")),
-        "runs_dir": str(runs), "reused": reused,
+        "runs_dir": str(runs), "reused": reused, "direct_prob": task_module.DIRECT_PROB,
         "seconds": {"sft": seconds["sft"], "grpo": seconds["grpo"], "eval": t_eval},
         "eval": {"sft": sft_eval, "grpo": grpo_eval},
         "grpo": grpo_curves(grpo_dir),

@@ -25,8 +25,10 @@ questions, 16 names, 10 item words.
 Worked solutions (the SFT targets) -- why they look like this
 --------------------------------------------------------------
 A ~1M-parameter Llama trained from scratch on a CPU learns arithmetic only when every
-generated token is easy to compute from a few tokens before it (measured here: plain two-digit
-addition with the answer written directly reached ~5% after 150 s). So a solution is:
+generated token is easy to compute from a few tokens before it (issue 6 reports ~5% for such a
+model trained 150 s on plain two-digit addition with the answer written directly; this format
+reaches ~85% greedy on 2-3 step problems after 800 SFT steps, ~6 min on one thread). So a
+worked solution is:
 
      47+38-19
     47+38: 7+8+0=5 c1, 4+3+1=8 c0, 85
@@ -44,7 +46,30 @@ addition with the answer written directly reached ~5% after 150 s). So a solutio
 Digits must be single tokens for this to work: the recipe sets `model.split_digits: true`,
 which makes the locally trained BPE put every digit in its own token (`models.train_tokenizer`).
 
-Verification steps. With probability CHECK_PROB a training solution adds, before the answer,
+Two styles: where the SFT model's partial accuracy comes from
+--------------------------------------------------------------
+Training rows asking "How many {items} are there now?" (DIRECT_QUESTION) are answered without
+working, " The answer is 66.", with probability DIRECT_PROB = 0.8; every other training row is
+worked, and held-out references are always worked. The SFT model imitates that: greedy, it
+states a guessed answer to that question (almost always wrong: a tiny model cannot add three
+numbers in one token) and works every other question in columns. At temperature 1 it still
+works the direct-style question about 20% of the time, so a group of 8 samples usually holds
+a worked, right answer next to direct, wrong ones: RL has a clear signal to learn to work
+every problem, and the response length grows (the E7 question: does RL make answers longer?).
+
+Why not simply stop SFT early on all-worked data (measured, held-out greedy accuracy on 200
+problems, 1 thread): batch 16, cosine, 300 / 450 / 550 / 650 / 800 steps gave 0.5% / 26% / 6% /
+79.5% / 84.5% -- the model learns to copy the equation line abruptly, at a step that moves with
+the schedule and the data order, so no step count promises partial accuracy. And GRPO from
+such a model mostly has to sharpen digit predictions one noisy sample at a time: from 54.5%
+(batch 32 x 400 steps) it reached 59-63% in 30-50 steps (lr 5e-5, 32 prompts per step, dynamic
+sampling), and it collapsed at lr >= 1e-4. With the two styles the SFT model is past that
+transition (its worked answers are ~90% right) and the room for RL is the style choice on one
+question in three (measured: 59% -> 91% in 20 GRPO steps; numbers in recipes/tiny-math.yaml). The SFT
+stage is therefore trained to convergence (2000 steps): stopping it early only adds the luck of the
+transition above (1100 steps gave 61.5% with one torch thread and 18% with two).
+
+Verification steps. With probability CHECK_PROB a worked training solution adds, before the answer,
 the inverse of its last operation: "Check: 66+19=85" (for a gain, "Check: 85-38=47"). It only
 restates numbers already written (no new arithmetic), so it is a behaviour whose frequency can
 be counted before and after RL (`behaviour_counts`), not a real error detector.
@@ -57,17 +82,19 @@ Splits (train and held-out differ)
 - Templates: the (start sentence, question) pair of a problem comes from 6 pairings in training
   and 3 other pairings in the held-out set (`template_split`). Every sentence form occurs in
   training; only the combination is new.
-- Eval solutions never contain a Check line (CHECK_PROB is train-only).
+- Eval solutions are always worked and never contain a Check line (DIRECT_PROB and CHECK_PROB
+  are train-only).
 Why no new words in the held-out set: measured on an SFT model (train greedy accuracy 63%),
 held-out problems with unseen names and items scored 1%, an unseen opener ("After that,")
 10%, an unseen question 45% -- the untrained embeddings of new words break the copying of the
 numbers. That tests vocabulary coverage of a model trained from scratch, not arithmetic, and RL
 on training prompts could not fix it; held-out numbers alone scored 67%, like training problems.
 
-Rows: {"prompt", "completion" (the worked solution, starts with a space), "answer" (the gold
-number as text, the verifier reference), "verifier": "math", "meta"}. `meta` keys: task,
-answer, start, ops ([[sign, operand], ...]), n_steps, carries (columns with a carry/borrow out),
-check (the solution has a Check line), template ([start sentence, question] indices), split.
+Rows: {"prompt", "completion" (the SFT target, starts with a space), "answer" (the gold number
+as text, the verifier reference), "verifier": "math", "meta"}. `meta` keys: task, answer,
+start, ops ([[sign, operand], ...]), n_steps, carries (columns with a carry/borrow out), style
+("worked" | "direct"), check (the solution has a Check line), template ([start sentence,
+question] indices), split.
 
 Scoring: `evaluate` runs `verifiers.get_verifier("math")` in-process on every completion (the
 answers are short and the verifier has its own size guards; training uses the worker pool
@@ -86,7 +113,9 @@ VERIFIER = "math"
 PROMPT_TEMPLATE = "Question: {problem}\nAnswer:"
 
 EVAL_FRACTION_BUCKETS = 5  # a number tuple goes to eval when sha1 % 5 == 0 (~20%)
-CHECK_PROB = 0.25  # train solutions with a "Check:" line
+DIRECT_QUESTION = 2  # "How many {items} are there now?": mostly answered without working in training
+DIRECT_PROB = 0.8  # P(direct answer | DIRECT_QUESTION) in training; every other train row is worked
+CHECK_PROB = 0.25  # worked train solutions with a "Check:" line
 STEPS = (2, 3)  # operations per problem, equally likely
 START_RANGE = (10, 99)
 OPERAND_RANGE = (1, 99)
@@ -206,10 +235,14 @@ def _problem(rng: random.Random, split: str) -> dict[str, Any]:
         text = clause.format(pro=who, n=n)
         sentences.append(_cap(opener + text) if opener else _cap(text))
     sentences.append(QUESTIONS[question].format(Name=name, pro=pro, items=items))
-    check = split == "train" and rng.random() < CHECK_PROB
+    direct = split == "train" and question == DIRECT_QUESTION and rng.random() < DIRECT_PROB
+    check = split == "train" and not direct and rng.random() < CHECK_PROB
     completion, answer, carries = solution(start, ops, check)
+    if direct:
+        completion = f" The answer is {answer}."
     meta = {"task": TASK_NAME, "answer": str(answer), "start": start, "ops": [[s, n] for s, n in ops],
-            "n_steps": len(ops), "carries": carries, "check": check, "template": [frame, question], "split": split}
+            "n_steps": len(ops), "carries": carries, "style": "direct" if direct else "worked", "check": check,
+            "template": [frame, question], "split": split}
     return {"prompt": PROMPT_TEMPLATE.format(problem=" ".join(sentences)), "completion": completion,
             "answer": str(answer), "verifier": VERIFIER, "meta": meta}
 

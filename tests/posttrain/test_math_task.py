@@ -75,8 +75,24 @@ def test_number_ranges_and_mix(train):
     assert 0.35 < steps.count(2) / len(steps) < 0.65
     signs = [s for r in train for s, _ in r["meta"]["ops"]]
     assert 0.35 < signs.count("+") / len(signs) < 0.65
-    checks = sum(r["meta"]["check"] for r in train) / len(train)
+    worked = [r for r in train if r["meta"]["style"] == "worked"]
+    checks = sum(r["meta"]["check"] for r in worked) / len(worked)
     assert abs(checks - M.CHECK_PROB) < 0.08
+
+
+def test_two_styles(train, eval_set):
+    """Training answers the DIRECT_QUESTION phrasing mostly without working; everything else is worked."""
+    direct = [r for r in train if r["meta"]["style"] == "direct"]
+    asked = [r for r in train if r["meta"]["template"][1] == M.DIRECT_QUESTION]
+    assert direct and all(r["meta"]["template"][1] == M.DIRECT_QUESTION for r in direct)
+    assert abs(len(direct) / len(asked) - M.DIRECT_PROB) < 0.1
+    for r in direct:
+        assert r["completion"] == f" The answer is {r['answer']}." and not r["meta"]["check"]
+        assert not M.is_worked(r["completion"])
+    assert all(M.is_worked(r["completion"]) for r in train if r["meta"]["style"] == "worked")
+    # held-out references are always worked, the held-out set does ask the direct question
+    assert all(r["meta"]["style"] == "worked" for r in eval_set)
+    assert any(r["meta"]["template"][1] == M.DIRECT_QUESTION for r in eval_set)
 
 
 def test_splits_differ(train, eval_set):
@@ -141,7 +157,7 @@ def test_evaluate_gold_wrong_and_missing(train, eval_set):
     metas = [r["meta"] for r in rows]
     gold = M.evaluate(metas, [r["completion"] for r in rows])
     assert gold["accuracy"] == 1.0 and gold["frac_equation_right"] == 1.0 and gold["n"] == 40
-    assert gold["frac_no_answer"] == 0.0 and gold["frac_verification"] == 0.0
+    assert gold["frac_no_answer"] == 0.0 and gold["frac_verification"] == 0.0 and gold["frac_worked"] == 1.0
     assert gold["accuracy_2_steps"] == 1.0 and gold["accuracy_3_steps"] == 1.0
 
     wrong = [r["completion"].replace(f"The answer is {r['answer']}.", f"The answer is {int(r['answer']) + 1}.")
