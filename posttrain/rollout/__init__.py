@@ -47,7 +47,9 @@ Contract
   `torch.inference_mode` in eval mode (no dropout) and does per step: one forward, one sampler call
   (softmax, cumsum, searchsorted), three buffer writes, and one host sync for EOS (and one for stop
   candidates when stop strings are set). Fused weights are cached per model and rebuilt when any
-  parameter's version counter moved, so an optimizer step between calls is always seen. Not
+  parameter's version counter moved, so an optimizer step between calls is always seen (torch's fused
+  AdamW writes weights without bumping the counters: `loop.build_optimizer` bumps them after each step with
+  `torch.autograd.graph.increment_version`; do the same in a loop of your own with a fused optimizer). Not
   thread-safe: one `generate` at a time per model. `tune_malloc` raises glibc's malloc thresholds
   once per process (see there). Measured speed: `scripts/bench.py`.
 - Backends. `generate(..., backend=None)` uses the process default that `configure` sets (the CLI sets it

@@ -124,3 +124,25 @@ def test_prepare_run_dir_keeps_previous(tmp_path):
     loop.prepare_run_dir(d, resume=False, log=lambda s: None)
     assert (tmp_path / "sft.prev" / "metrics.jsonl").read_text() == "x"
     assert d.is_dir() and not any(d.iterdir())
+
+
+def test_build_optimizer_is_fused_and_bumps_versions_so_the_rollout_engine_sees_updates():
+    """The fused AdamW kernel writes weights without bumping version counters; the engine caches its fused
+    weights by version counters, so a stale cache would sample from the weights before the update."""
+    from posttrain.models import build_model, train_tokenizer
+    from posttrain.rollout import generate
+
+    tok = train_tokenizer([f"a b c {i} d e" for i in range(50)], vocab_size=300)
+    model = build_model("tiny", tok, seed=0)
+    opt = loop.build_optimizer(model, lr=0.5)
+    assert opt.param_groups[0]["fused"]
+    greedy = dict(max_new_tokens=8, greedy=True, ignore_eos=True)
+    before = generate(model, tok, ["a b"], **greedy)[0].policy_logprobs
+    versions = [p._version for p in model.parameters()]
+    ids = torch.tensor([tok("a b c d e")["input_ids"]])
+    model(input_ids=ids, labels=ids).loss.backward()
+    opt.step()
+    assert all(p._version > v for p, v in zip(model.parameters(), versions))
+    after = generate(model, tok, ["a b"], **greedy)[0].policy_logprobs
+    fresh = generate(model, tok, ["a b"], backend="hf", **greedy)[0].policy_logprobs
+    assert after != before and max(abs(a - b) for a, b in zip(after, fresh)) < 1e-4
