@@ -74,8 +74,10 @@ def model_device(model) -> torch.device:
 
 
 def token_logprobs(logits: torch.Tensor, targets: torch.Tensor, temperature: float = 1.0,
-                   return_entropy: bool = False):
-    """logits (..., V), targets (...) -> (log p(target) (...), entropy (...) | None), no log_softmax copy."""
+                   return_entropy: bool = False, entropy_grad: bool = True):
+    """logits (..., V), targets (...) -> (log p(target) (...), entropy (...) | None), no log_softmax copy.
+
+    entropy_grad=False: the entropy is a metric only, computed outside autograd (no softmax kept for backward)."""
     if temperature != 1.0:
         logits = logits / temperature
     lse = torch.logsumexp(logits, dim=-1)  # (...)
@@ -83,20 +85,23 @@ def token_logprobs(logits: torch.Tensor, targets: torch.Tensor, temperature: flo
     entropy = None
     if return_entropy:
         # H = lse - sum_v p_v * logit_v
-        entropy = lse - (torch.softmax(logits, -1) * logits).sum(-1)
+        with torch.set_grad_enabled(entropy_grad and torch.is_grad_enabled()):
+            x, z = (logits, lse) if entropy_grad else (logits.detach(), lse.detach())
+            entropy = z - (torch.softmax(x, -1) * x).sum(-1)
     return logp, entropy
 
 
 def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tensor,
                       completion_mask: torch.Tensor | None = None, *, temperature: float = 1.0,
-                      return_entropy: bool = False):
+                      return_entropy: bool = False, entropy_grad: bool = True):
     """Log-probs of `input_ids` under `model`, aligned with input_ids (see module docstring).
 
     input_ids (B, T) long; attention_mask (B, T) 0/1; completion_mask (B, T) 0/1 selects the tokens to
     score (default: every real token that has a real token before it).
     Returns (logps (B, T), entropy (B, T) | None), both 0 where completion_mask is 0; differentiable
     when called under autograd. `temperature` divides the logits first (use the sampling temperature
-    to get the sampler's distribution; PPO/GRPO ratios use 1.0).
+    to get the sampler's distribution; PPO/GRPO ratios use 1.0). entropy_grad=False: the entropy is a
+    metric only (no gradient, cheaper backward), as in GRPO; PPO's entropy bonus needs True.
     """
     if input_ids.dim() != 2 or input_ids.shape != attention_mask.shape:
         raise ValueError(f"sequence_logprobs: input_ids {tuple(input_ids.shape)} and attention_mask "
@@ -128,7 +133,7 @@ def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tens
         kw["logits_to_keep"] = T - c + 1
     logits = model(input_ids=input_ids, attention_mask=attention_mask, **kw).logits  # (B, T or T-c+1, V)
     logits = logits[:, -(T - c + 1):-1]  # (B, T-c, V) predicts columns c .. T-1
-    logp, ent = token_logprobs(logits.float(), input_ids[:, c:], temperature, return_entropy)  # (B, T-c)
+    logp, ent = token_logprobs(logits.float(), input_ids[:, c:], temperature, return_entropy, entropy_grad)  # (B, T-c)
     m = completion_mask[:, c:].to(logp.dtype)
     pad = torch.zeros(B, c, device=dev, dtype=logp.dtype)
     logps = torch.cat([pad, logp * m], 1)  # (B, T)

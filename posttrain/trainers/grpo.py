@@ -403,7 +403,8 @@ def grpo_loss(cfg: GRPOConfig, model, mb: dict[str, torch.Tensor], scale: float,
     """The GRPO loss of one micro-batch (policy term + beta * KL term, same aggregation), times `scale`."""
     loss_mask = mb["loss_mask"]
     logps, entropy = sequence_logprobs(model, mb["input_ids"], mb["attention_mask"], loss_mask,
-                                       temperature=cfg.temperature, return_entropy=with_entropy)  # (b, T)
+                                       temperature=cfg.temperature, return_entropy=with_entropy,
+                                       entropy_grad=False)  # (b, T); the entropy is a metric here
     loss, m = ppo_policy_loss(logps, mb["old_logps"], mb["advantages"], loss_mask, clip_eps=cfg.clip_eps,
                               clip_eps_high=cfg.clip_eps_high, aggregation=cfg.aggregation,
                               max_tokens=cfg.max_new_tokens)

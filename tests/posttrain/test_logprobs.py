@@ -95,6 +95,16 @@ def test_completion_mask_temperature_and_entropy(model):
         torch.testing.assert_close(ent[i, -3:], -(p * p.log()).sum(-1), atol=1e-4, rtol=1e-6)
 
 
+def test_entropy_without_gradient_is_the_same_number(model):
+    seqs = _seqs(2, seed=3)
+    ids, am = _pad(seqs, "left")
+    lp1, e1 = sequence_logprobs(model, ids, am, return_entropy=True)
+    lp2, e2 = sequence_logprobs(model, ids, am, return_entropy=True, entropy_grad=False)
+    assert e1.requires_grad and not e2.requires_grad and lp2.requires_grad
+    torch.testing.assert_close(e1.detach(), e2, atol=0, rtol=0)
+    torch.testing.assert_close(lp1, lp2, atol=0, rtol=0)
+
+
 def test_gradients_match_naive(model):
     seqs = _seqs(2, seed=2)
     ids, am = _pad(seqs, "left")
