@@ -23,6 +23,7 @@ Presets (parameter counts with the default 1024-token vocabulary, tied embedding
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 from typing import Iterable
 
@@ -223,7 +224,9 @@ def apply_lora(model, lora_cfg, task_type: str = "CAUSAL_LM"):
                         target_modules=target[0] if target == ["all-linear"] else list(target),
                         task_type=task_type, bias="none")
     try:
-        return get_peft_model(model, config)
+        with warnings.catch_warnings():  # peft 0.21 asks transformers 5 a deprecated property; nothing to act on
+            warnings.filterwarnings("ignore", message=".*is_gradient_checkpointing.*", category=FutureWarning)
+            return get_peft_model(model, config)
     except ValueError as e:  # e.g. a target module name the model does not have
         raise ModelError(f"lora.target_modules {list(target)}: {e}") from None
 
