@@ -395,6 +395,23 @@ def bench_generate(args) -> dict:
 # ------------------------------------------------------------------ section: sft
 
 
+def _trl_timed_train(make_trainer, printer, steps: int, tokens: int, args) -> float:
+    """Build a TRL trainer (quietly), train it, and return the seconds of `train()`; checks that it ran `steps`
+    steps without activation checkpointing on exactly our `tokens` non-pad tokens (when it counts them)."""
+    with contextlib.redirect_stderr(io.StringIO()):
+        trainer = make_trainer()
+        trainer.remove_callback(printer)
+        t0 = time.perf_counter()
+        out = trainer.train()
+    _sync(args.device)
+    dt = time.perf_counter() - t0
+    assert out.global_step == steps, f"TRL ran {out.global_step} steps, expected {steps}"
+    assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
+    seen = getattr(trainer, "_total_train_tokens", tokens)
+    assert seen == tokens, f"TRL trained on {seen} non-pad tokens, we on {tokens}"
+    return dt
+
+
 def _sft_setup(args) -> SimpleNamespace:
     """Our SFT step and TRL's SFTTrainer over the same S*B tiny-summarize rows (see the module docstring)."""
     from posttrain import loop
@@ -444,19 +461,9 @@ def _sft_setup(args) -> SimpleNamespace:
     def trl_run() -> float:
         targs = TRLConfig(learning_rate=lr, max_length=max_len, packing=False, padding_free=False,
                           completion_only_loss=True, **_trl_common(args, tmp, B))
-        with contextlib.redirect_stderr(io.StringIO()):
-            trainer = SFTTrainer(model=copy.deepcopy(base), args=targs, train_dataset=Dataset.from_list(data),
-                                 processing_class=tok)
-            trainer.remove_callback(printer)
-            t0 = time.perf_counter()
-            out = trainer.train()
-        _sync(args.device)
-        dt = time.perf_counter() - t0
-        assert out.global_step == S, f"TRL ran {out.global_step} steps, expected {S}"
-        assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
-        seen = getattr(trainer, "_total_train_tokens", tokens)
-        assert seen == tokens, f"TRL trained on {seen} non-pad tokens, we on {tokens}"
-        return dt
+        return _trl_timed_train(lambda: SFTTrainer(model=copy.deepcopy(base), args=targs,
+                                                   train_dataset=Dataset.from_list(data), processing_class=tok),
+                                printer, S, tokens, args)
 
     ctx.runners["trl"] = trl_run
     ctx.cleanup = lambda: shutil.rmtree(tmp, ignore_errors=True)
@@ -543,19 +550,9 @@ def _rm_setup(args) -> SimpleNamespace:
     def trl_run() -> float:
         targs = TRLConfig(learning_rate=lr, max_length=max_len, disable_dropout=True,
                           center_rewards_coefficient=None, **_trl_common(args, str(Path(tmp) / "trl"), B))
-        with contextlib.redirect_stderr(io.StringIO()):
-            trainer = RewardTrainer(model=copy.deepcopy(base), args=targs, train_dataset=Dataset.from_list(data),
-                                    processing_class=tok)
-            trainer.remove_callback(printer)
-            t0 = time.perf_counter()
-            out = trainer.train()
-        _sync(args.device)
-        dt = time.perf_counter() - t0
-        assert out.global_step == S, f"TRL ran {out.global_step} steps, expected {S}"
-        assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
-        seen = getattr(trainer, "_total_train_tokens", tokens)
-        assert seen == tokens, f"TRL trained on {seen} non-pad tokens, we on {tokens}"
-        return dt
+        return _trl_timed_train(lambda: RewardTrainer(model=copy.deepcopy(base), args=targs,
+                                                      train_dataset=Dataset.from_list(data), processing_class=tok),
+                                printer, S, tokens, args)
 
     ctx.runners["trl"] = trl_run
     return ctx
