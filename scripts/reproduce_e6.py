@@ -16,10 +16,10 @@ times are reported next to the results.
 CPU:  python scripts/reproduce_e6.py --quick      tiny preset (~1.2M parameters): measured 11.8 and 14.9 min
                                                    single-threaded (--threads 1) on the 2-core machine shared
                                                    with other jobs (load average 3-6; ~9.7 min of CPU time)
-      python scripts/reproduce_e6.py              small preset (~11M parameters, the seed's 10M+); NOT run here.
-                                                   Estimated 88 min single-threaded, ~55 min with 2 threads on
-                                                   2 cores, from per-step times of every stage on `small`
-                                                   measured with `--estimate` (ESTIMATE below)
+      python scripts/reproduce_e6.py              small preset (~11M parameters, the seed's 10M+): measured 58.4
+                                                   min with --threads 1 on the 2-core machine while another
+                                                   1-thread job ran (SFT+pairs+RM 19 min, DPO 6-7 min and PPO
+                                                   6-8 min per seed); both claims held (see the README)
       python scripts/reproduce_e6.py --estimate   times a few steps of every stage on `small`, prints the estimate
 Multi-GPU: SFT, RM and DPO accept `accelerate launch`, PPO runs in one process; this script runs every stage as
            one process, one after the other.
