@@ -803,9 +803,7 @@ def _train(res: Resolved, cfg: GRPOConfig, verifier, pool, problems: list[Proble
                          for k, v in m.items()}
                     if tokens == 0.0:
                         m["ratio_max"] = float("-inf")  # a padding micro-batch: no rows of this process
-                    if world > 1 and loop.global_sum(accelerator, 0.0 if bool(torch.isfinite(loss)) else 1.0):
-                        loss = loss * float("nan")  # any process non-finite: every process stops at this step
-                    return loss, m
+                    return loss, m  # a non-finite loss on any process stops every process (loop.optimizer_step)
 
                 out = loop.optimizer_step(accelerator, model, optimizer, scheduler, mbs, loss_fn, cfg.max_grad_norm,
                                           step + 1)

@@ -59,6 +59,30 @@ class _Acc:  # the subset of Accelerator used by optimizer_step / Checkpointer
         pass
 
 
+def test_nonfinite_loss_on_another_process_stops_this_one_before_backward():
+    """Under several processes every process must stop at the same micro-batch: one that raised while the others
+    entered backward would leave them waiting in the gradient all-reduce forever."""
+
+    class TwoProcesses(_Acc):
+        num_processes = 2
+        device = torch.device("cpu")
+
+        def no_sync(self, model):
+            import contextlib
+            return contextlib.nullcontext()
+
+        def reduce(self, t, reduction="sum"):  # the other process reports a non-finite loss
+            return t + 1.0
+
+        def backward(self, loss):
+            raise AssertionError("backward must not start when any process's loss is non-finite")
+
+    model, opt, sch = _toy()
+    finite = lambda mb: (model(torch.ones(1, 3)).sum(), {})
+    with pytest.raises(loop.TrainingError, match="non-finite loss on 1 other process.* at step 5"):
+        loop.optimizer_step(TwoProcesses(), model, opt, sch, [0], finite, 1.0, 5)
+
+
 def test_accumulation_equals_one_big_batch():
     x = torch.randn(8, 3)
     y = torch.randn(8, 1)
