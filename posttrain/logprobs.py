@@ -16,6 +16,12 @@ Passing no position_ids would be wrong for left padding: Llama-family models the
 from column 0, padding included. Wrappers (accelerate/DDP, peft, torch.compile) work: we only read
 `.logits` from the output.
 
+Lean path. For a plain fp32 Llama / Mistral / Qwen2 `*ForCausalLM` (not wrapped by DDP / peft /
+torch.compile, no gradient checkpointing, no dropout) `sequence_logprobs` runs
+`posttrain.lean_train.lean_forward` instead of the model's forward, and a fused log-prob with a cheaper
+backward: the same numbers within fp32 rounding, ~10-14% faster for a tiny-model update step. Turn it
+off with `posttrain.lean_train.ENABLED = False` or POSTTRAIN_LEAN_TRAIN=0.
+
 Memory. Logits are requested only from the first completion column on (`logits_to_keep`, when the
 model accepts it), and log-probs are gathered logit minus logsumexp: no (B, T, V) log_softmax copy is
 made. Under autograd the logits themselves are kept for the backward pass (as for any loss on them).
@@ -125,6 +131,14 @@ def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tens
         zeros = torch.zeros(B, T, device=dev, dtype=dtype)
         return zeros, (zeros.clone() if return_entropy else None)
     c = int(cols[0])  # first scored column; logits needed from position c-1 on
+    from posttrain import lean_train
+
+    if lean_train.lean_train_support(model, T)[0]:
+        # Same numbers as the branch below (fp32 rounding), fewer ops: see posttrain/lean_train.py.
+        logits = lean_train.lean_forward(model, input_ids, attention_mask, position_ids_from_mask(attention_mask),
+                                         positions=slice(c - 1, T - 1), temperature=temperature)  # (B, T-c, V)
+        logp, ent = lean_train.token_logprobs_fused(logits, input_ids[:, c:], return_entropy, entropy_grad)  # (B, T-c)
+        return _place(logp, ent, completion_mask, c)
     kw: dict[str, Any] = {}
     if _accepts(model, "position_ids"):
         kw["position_ids"] = position_ids_from_mask(attention_mask)
@@ -134,10 +148,15 @@ def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tens
     logits = model(input_ids=input_ids, attention_mask=attention_mask, **kw).logits  # (B, T or T-c+1, V)
     logits = logits[:, -(T - c + 1):-1]  # (B, T-c, V) predicts columns c .. T-1
     logp, ent = token_logprobs(logits.float(), input_ids[:, c:], temperature, return_entropy, entropy_grad)  # (B, T-c)
+    return _place(logp, ent, completion_mask, c)
+
+
+def _place(logp: torch.Tensor, ent: torch.Tensor | None, completion_mask: torch.Tensor, c: int):
+    """(B, T-c) per-token values for columns c.. -> (B, T) aligned with input_ids, 0 outside completion_mask."""
     m = completion_mask[:, c:].to(logp.dtype)
-    pad = torch.zeros(B, c, device=dev, dtype=logp.dtype)
+    pad = torch.zeros(logp.shape[0], c, device=logp.device, dtype=logp.dtype)
     logps = torch.cat([pad, logp * m], 1)  # (B, T)
-    entropy = torch.cat([pad, ent * m], 1) if return_entropy else None  # (B, T)
+    entropy = torch.cat([pad, ent * m], 1) if ent is not None else None  # (B, T)
     return logps, entropy
 
 

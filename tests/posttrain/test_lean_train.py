@@ -1,0 +1,279 @@
+"""posttrain.lean_train: the lean training forward equals the HF forward (logits and every parameter's
+gradient) on padded batches, sequence_logprobs gives the same numbers with the switch on and off, and
+unsupported models fall back to the HF forward.
+
+Tolerances (fp32): logits atol 1e-5; log-probs atol 1e-5 + rtol 2e-6 (values up to ~20); gradients rtol 1e-4 with atol 1e-5 * max|grad|
+of that parameter (the two paths sum the same terms in a different order)."""
+from __future__ import annotations
+
+import importlib
+
+import pytest
+import torch
+from torch import nn
+
+from posttrain import lean_train
+from posttrain.logprobs import position_ids_from_mask, sequence_logprobs
+
+V = 97
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _llama(**kw):
+    from transformers import LlamaConfig, LlamaForCausalLM
+
+    cfg = dict(vocab_size=V, hidden_size=64, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
+               num_key_value_heads=4, max_position_embeddings=128, pad_token_id=0, tie_word_embeddings=True)
+    cfg.update(kw)
+    torch.manual_seed(0)
+    return _perturb(LlamaForCausalLM(LlamaConfig(**cfg)))
+
+
+def _qwen2(**kw):
+    from transformers import Qwen2Config, Qwen2ForCausalLM
+
+    cfg = dict(vocab_size=V, hidden_size=64, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
+               num_key_value_heads=2, max_position_embeddings=128, pad_token_id=0, tie_word_embeddings=False)
+    cfg.update(kw)
+    torch.manual_seed(0)
+    return _perturb(Qwen2ForCausalLM(Qwen2Config(**cfg)))
+
+
+def _mistral():
+    from transformers import MistralConfig, MistralForCausalLM
+
+    torch.manual_seed(0)
+    return _perturb(MistralForCausalLM(MistralConfig(
+        vocab_size=V, hidden_size=64, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
+        num_key_value_heads=2, max_position_embeddings=128, pad_token_id=0, sliding_window=None)))
+
+
+def _perturb(model):
+    """Random norm weights and biases (not the init's ones/zeros) and larger logits, so every parameter's
+    gradient path is exercised; fp32, eval mode."""
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if p.dim() == 1:
+                p.copy_(1.0 + 0.3 * torch.randn(p.shape, generator=g) if "norm" in name
+                        else 0.1 * torch.randn(p.shape, generator=g))
+        model.lm_head.weight.mul_(10)
+    return model.float().eval()
+
+
+MODELS = {
+    "llama-mha-tied": lambda: _llama(),
+    "llama-gqa-untied": lambda: _llama(num_key_value_heads=2, tie_word_embeddings=False),
+    "llama-biases": lambda: _llama(attention_bias=True, mlp_bias=True),
+    "qwen2-gqa-bias": lambda: _qwen2(),
+    "qwen2-tied": lambda: _qwen2(tie_word_embeddings=True, num_key_value_heads=4),
+    "mistral": _mistral,
+    "llama-yarn-rope": lambda: _llama(rope_parameters={"rope_type": "yarn", "factor": 2.0, "rope_theta": 10000.0,
+                                                       "original_max_position_embeddings": 64}),  # attention_scaling != 1
+}
+
+
+def _batch(padding: str, B=4, T=13, seed=0):
+    """(input_ids, attention_mask, completion_mask): left-padded prompts, right-padded completions, or both."""
+    g = torch.Generator().manual_seed(seed)
+    ids = torch.randint(3, V, (B, T), generator=g)
+    am = torch.ones(B, T, dtype=torch.long)
+    for i in range(B):
+        if padding in ("left", "both"):
+            am[i, :i] = 0  # row i: i leading pads
+        if padding in ("right", "both"):
+            am[i, T - (B - 1 - i):] = 0  # row i: B-1-i trailing pads
+    ids = ids * am
+    cm = am.clone()
+    cm[:, :5] = 0  # a prompt of 5 columns
+    return ids, am, cm
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+@pytest.mark.parametrize("padding", ["none", "left", "right", "both"])
+def test_logits_and_gradients_equal_hf(name, padding):
+    model = MODELS[name]()
+    ok, why = lean_train.lean_train_support(model, 13)
+    assert ok, why
+    ids, am, cm = _batch(padding)
+    if padding != "none":
+        assert not bool(am.all())
+    pos = position_ids_from_mask(am)
+    keep = 9
+    real = am[:, -keep:].bool()  # (B, keep)
+
+    def loss_of(logits):  # sum of log-probs of the next real tokens over the kept columns
+        lp = torch.log_softmax(logits[:, :-1], -1).gather(-1, ids[:, -keep + 1:, None]).squeeze(-1)
+        return (lp * (am[:, -keep + 1:] * am[:, -keep:-1])).sum()
+
+    ref = model(input_ids=ids, attention_mask=am, position_ids=pos, logits_to_keep=keep).logits
+    ref_grads = torch.autograd.grad(loss_of(ref), list(model.parameters()))
+    out = lean_train.lean_forward(model, ids, am, pos, keep)
+    assert out.dtype == torch.float32 and out.shape == ref.shape
+    torch.testing.assert_close(out[real], ref[real], atol=1e-5, rtol=0)
+    grads = torch.autograd.grad(loss_of(out), list(model.parameters()))
+    for (pname, _), g, r in zip(model.named_parameters(), grads, ref_grads):
+        assert r.abs().max() > 0, pname
+        torch.testing.assert_close(g, r, rtol=1e-4, atol=1e-5 * float(r.abs().max()), msg=lambda m: f"{pname}: {m}")
+
+
+def _run(model, ids, am, cm, enabled, **kw):
+    before = lean_train.ENABLED
+    lean_train.ENABLED = enabled
+    try:
+        model.zero_grad(set_to_none=True)
+        lp, ent = sequence_logprobs(model, ids, am, cm, **kw)
+        (lp.sum() * 0.7).backward()
+        return lp.detach(), ent, {n: p.grad.clone() for n, p in model.named_parameters()}
+    finally:
+        lean_train.ENABLED = before
+
+
+@pytest.mark.parametrize("name", ["llama-mha-tied", "qwen2-gqa-bias"])
+@pytest.mark.parametrize("temperature,entropy", [(1.0, False), (0.7, True)])
+def test_sequence_logprobs_switch_on_equals_off(name, temperature, entropy, monkeypatch):
+    model = MODELS[name]()
+    ids, am, cm = _batch("both")
+    calls = []
+    real_forward = lean_train.lean_forward
+    monkeypatch.setattr(lean_train, "lean_forward", lambda *a, **k: calls.append(1) or real_forward(*a, **k))
+    kw = dict(temperature=temperature, return_entropy=entropy, entropy_grad=False)
+    lp0, e0, g0 = _run(model, ids, am, cm, False, **kw)
+    assert not calls
+    lp1, e1, g1 = _run(model, ids, am, cm, True, **kw)
+    assert calls, "the lean path was not taken"
+    torch.testing.assert_close(lp1, lp0, atol=1e-5, rtol=2e-6)
+    assert bool((lp1[cm == 0] == 0).all())
+    if entropy:
+        torch.testing.assert_close(e1, e0, atol=1e-5, rtol=2e-6)
+    for n in g0:
+        torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
+    # entropy with its gradient (PPO's entropy bonus): the loss is log-probs + entropy
+    def run_ent(enabled):
+        before = lean_train.ENABLED
+        lean_train.ENABLED = enabled
+        try:
+            model.zero_grad(set_to_none=True)
+            lp, ent = sequence_logprobs(model, ids, am, cm, temperature=temperature, return_entropy=True)
+            (lp.sum() + 0.3 * ent.sum()).backward()
+            return lp.detach(), ent.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}
+        finally:
+            lean_train.ENABLED = before
+
+    calls.clear()
+    lp2, e2, g2 = run_ent(True)
+    assert calls
+    lp4, e4, g4 = run_ent(False)
+    torch.testing.assert_close(lp2, lp4, atol=1e-5, rtol=2e-6)
+    torch.testing.assert_close(e2, e4, atol=1e-5, rtol=2e-6)
+    for n in g4:
+        torch.testing.assert_close(g2[n], g4[n], rtol=1e-4, atol=1e-5 * float(g4[n].abs().max()), msg=n)
+    calls.clear()
+    monkeypatch.setattr(lean_train, "ENABLED", True)
+    with torch.no_grad():  # and under no_grad (reference / old log-probs) the lean path runs too
+        lp3, _ = sequence_logprobs(model, ids, am, cm, temperature=temperature)
+    assert calls
+    torch.testing.assert_close(lp3, lp0, atol=1e-5, rtol=2e-6)
+
+
+def test_unsupported_models_fall_back():
+    model = _llama()
+    assert lean_train.lean_train_support(model, 13)[0]
+
+    class Wrapper(nn.Module):  # DDP-like: the HF model in .module, its own forward
+        def __init__(self, m):
+            super().__init__()
+            self.module = m
+
+        def forward(self, **kw):
+            return self.module(**kw)
+
+    ok, why = lean_train.lean_train_support(Wrapper(model))
+    assert not ok and "ForCausalLM" in why
+
+    from peft import LoraConfig, get_peft_model
+
+    peft_model = get_peft_model(_llama(), LoraConfig(r=2, target_modules=["q_proj", "v_proj"]))
+    assert not lean_train.lean_train_support(peft_model)[0]
+    assert not lean_train.lean_train_support(peft_model.get_base_model())[0]  # LoRA layers inside
+
+    gc = _llama()
+    gc.gradient_checkpointing_enable()
+    ok, why = lean_train.lean_train_support(gc)
+    assert not ok and "checkpointing" in why
+
+    ok, why = lean_train.lean_train_support(_llama(attention_dropout=0.1))
+    assert not ok and "dropout" in why
+
+    ok, why = lean_train.lean_train_support(_llama(hidden_act="gelu"))
+    assert not ok and "hidden_act" in why
+
+    ok, why = lean_train.lean_train_support(_llama().double())
+    assert not ok and "fp32" in why
+
+    hooked = _llama()
+    hooked.model.layers[0].mlp.register_forward_hook(lambda *a: None)
+    assert not lean_train.lean_train_support(hooked)[0]
+
+    from transformers import MistralConfig, MistralForCausalLM
+
+    windowed = MistralForCausalLM(MistralConfig(vocab_size=V, hidden_size=64, intermediate_size=96,
+                                                num_hidden_layers=1, num_attention_heads=4, num_key_value_heads=2,
+                                                sliding_window=8))
+    assert lean_train.lean_train_support(windowed, 8)[0] and not lean_train.lean_train_support(windowed, 9)[0]
+
+    # The wrapped / adapted / checkpointed models still give HF's numbers through sequence_logprobs.
+    ids, am, cm = _batch("left")
+    ref, _ = sequence_logprobs(model, ids, am, cm)
+    out, _ = sequence_logprobs(Wrapper(model), ids, am, cm)
+    torch.testing.assert_close(out, ref)
+
+    before = lean_train.ENABLED
+    try:
+        lean_train.ENABLED = False
+        ok, why = lean_train.lean_train_support(model)
+        assert not ok and "disabled" in why
+    finally:
+        lean_train.ENABLED = before
+
+
+def test_environment_variable_turns_it_off(monkeypatch):
+    try:
+        monkeypatch.setenv("POSTTRAIN_LEAN_TRAIN", "0")
+        assert importlib.reload(lean_train).ENABLED is False
+        monkeypatch.setenv("POSTTRAIN_LEAN_TRAIN", "1")
+        assert importlib.reload(lean_train).ENABLED is True
+    finally:
+        monkeypatch.delenv("POSTTRAIN_LEAN_TRAIN")
+        importlib.reload(lean_train)
+
+
+def test_fused_token_logprobs_equal_autograd():
+    from posttrain.logprobs import token_logprobs
+
+    g = torch.Generator().manual_seed(0)
+    logits = (4 * torch.randn(3, 5, 11, generator=g)).requires_grad_()
+    targets = torch.randint(0, 11, (3, 5), generator=g)
+    w = torch.randn(3, 5, generator=g)
+    lp0, e0 = token_logprobs(logits, targets, return_entropy=True, entropy_grad=False)
+    (g0,) = torch.autograd.grad((lp0 * w).sum(), logits)
+    lp1, e1 = lean_train.token_logprobs_fused(logits, targets, return_entropy=True)
+    (g1,) = torch.autograd.grad((lp1 * w).sum(), logits)
+    torch.testing.assert_close(lp1, lp0)
+    torch.testing.assert_close(e1, e0)
+    torch.testing.assert_close(g1, g0)
+    assert not e1.requires_grad
+    # with the entropy's gradient
+    lp0, e0 = token_logprobs(logits, targets, return_entropy=True)
+    (g0,) = torch.autograd.grad((lp0 * w).sum() + (e0 * w.flip(0)).sum(), logits)
+    lp1, e1 = lean_train.token_logprobs_fused(logits, targets, return_entropy=True, entropy_grad=True)
+    (g1,) = torch.autograd.grad((lp1 * w).sum() + (e1 * w.flip(0)).sum(), logits)
+    torch.testing.assert_close(e1, e0)
+    torch.testing.assert_close(g1, g0)
