@@ -166,18 +166,20 @@ class LeanLlama:
         self.attention_scaling = float(getattr(rot, "attention_scaling", 1.0))
         self.embed = base.embed_tokens.weight.detach()  # (V, d)
         # Per head, q/k rows go from half-split order (x_i, x_{i+D/2} are a RoPE pair) to interleaved
-        # order, so RoPE is one complex multiply; q.k is unchanged by permuting both the same way.
-        perm = torch.stack([torch.arange(D // 2), torch.arange(D // 2) + D // 2], 1).reshape(-1).to(self.device)
-
-        def qk_rows(w, heads):  # (heads*D, ...) -> same, rows permuted per head
-            return w.view(heads, D, *w.shape[1:])[:, perm].reshape(w.shape)
+        # order, so RoPE is one complex multiply; q.k is unchanged by permuting both the same way. One row
+        # index does it for the concatenated [q; k; v] weight (v rows stay in place).
+        perm = torch.stack([torch.arange(D // 2), torch.arange(D // 2) + D // 2], 1).reshape(-1)
+        qkv_rows = torch.cat([(torch.arange(heads)[:, None] * D + perm).reshape(-1) + off
+                              for heads, off in ((H, 0), (Hkv, H * D))] + [torch.arange(Hkv * D) + (H + Hkv) * D])
+        qkv_rows = qkv_rows.to(self.device)
 
         def fold(norm):  # RMSNorm weight * sqrt(d), folded into the columns of the next matrix
             return norm.weight.detach().float() * math.sqrt(d), torch.tensor(
                 math.sqrt(d * float(norm.variance_epsilon)), device=self.device, dtype=self.dtype)
 
-        def t(w):  # (out, in) -> contiguous (in, out) for x @ w
-            return w.t().contiguous().to(self.dtype)
+        def fused_t(w, scale):  # (out, in) weight x scale -> contiguous (in, out), one strided pass
+            out = torch.empty(w.shape[1], w.shape[0], device=self.device, dtype=self.dtype)
+            return torch.mul(w.t(), scale, out=out) if scale is not None else out.copy_(w.t())
 
         bias = _linear_bias
 
@@ -187,22 +189,22 @@ class LeanLlama:
             g1, c1 = fold(layer.input_layernorm)
             g2, c2 = fold(layer.post_attention_layernorm)
             sc = float(getattr(a, "scaling", D ** -0.5))
-            wq = qk_rows(_weight(a.q_proj).float(), H) * sc  # softmax scale folded into q
-            wk = qk_rows(_weight(a.k_proj).float(), Hkv)
-            qkv_w = t(torch.cat([wq, wk, _weight(a.v_proj).float()], 0) * g1)  # (d, NH*D)
+            row_scale = torch.ones(len(qkv_rows), device=self.device)
+            row_scale[:H * D] = sc  # softmax scale folded into q
+            qkv = torch.cat([_weight(a.q_proj), _weight(a.k_proj), _weight(a.v_proj)], 0).float()
+            qkv_w = fused_t(qkv.index_select(0, qkv_rows), g1[:, None] * row_scale[None, :])  # (d, NH*D)
             qkv_b = None
             if bias(a.q_proj) is not None:
-                qkv_b = torch.cat([qk_rows(bias(a.q_proj).float(), H) * sc,
-                                   qk_rows(bias(a.k_proj).float(), Hkv),
-                                   bias(a.v_proj).float()]).to(self.dtype)
+                qkv_b = (torch.cat([bias(a.q_proj), bias(a.k_proj), bias(a.v_proj)]).float()
+                         .index_select(0, qkv_rows) * row_scale).to(self.dtype)
             gate_w, up_w = _weight(m.gate_proj), _weight(m.up_proj)
-            gu_w = t(torch.cat([gate_w, up_w], 0).float() * g2)  # (d, 2I)
+            gu_w = fused_t(torch.cat([gate_w, up_w], 0).float(), g2[:, None])  # (d, 2I)
             gu_b = None if bias(m.gate_proj) is None else torch.cat([bias(m.gate_proj), bias(m.up_proj)])
             inter = gate_w.shape[0]
-            self.layers.append((c1, qkv_w, qkv_b, t(_weight(a.o_proj)), bias(a.o_proj),
-                                c2, gu_w, gu_b, inter, t(_weight(m.down_proj)), bias(m.down_proj)))
+            self.layers.append((c1, qkv_w, qkv_b, fused_t(_weight(a.o_proj), None), bias(a.o_proj),
+                                c2, gu_w, gu_b, inter, fused_t(_weight(m.down_proj), None), bias(m.down_proj)))
         gf, self.cf = fold(base.norm)
-        self.head_w = t(_weight(model.lm_head).float() * gf)  # (d, V)
+        self.head_w = fused_t(_weight(model.lm_head).float(), gf[:, None])  # (d, V)
         self.head_b = bias(model.lm_head)
         self._bound = -1
         self._cis = None
@@ -372,16 +374,17 @@ class LeanLlama:
             c1, qkv_w, qkv_b, o_w, o_b, c2, gu_w, gu_b, inter, down_w, down_b = layer
             h = x / hypot(norm(x, 2, -1, True), c1)
             qkv = h @ qkv_w if qkv_b is None else torch.addmm(qkv_b, h, qkv_w)  # (B, NH*D)
-            zq, zk, zv = torch.view_as_complex(qkv.view(B, NH, D // 2, 2)).split(split, 1)  # (B, ., D/2) complex
+            zq, zk, zv = torch.view_as_complex(qkv.view(B, NH, D // 2, 2)).split_with_sizes(split, 1)  # (B, ., D/2)
             q = torch.view_as_real(zq * cis).view(BH, rep, D)  # roped q (softmax scale folded in)
             mul(zk, cis, out=kc[:, :, col])  # roped k straight into the cache
             vc[:, :, col] = zv
-            s = softmax(bmm(q, kT[:, :, :T]).add_(bias), -1)  # (B*Hkv, rep, T)
+            s = softmax(torch.baddbmm(bias, q, kT[:, :, :T]), -1)  # (B*Hkv, rep, T): scores + key mask
             x.addmm_(bmm(s, vv[:, :T]).view(B, HD), o_w)  # residual += attn @ Wo, in place
             if o_b is not None:
                 x = x + o_b
             h = x / hypot(norm(x, 2, -1, True), c2)
-            g, u = (h @ gu_w if gu_b is None else torch.addmm(gu_b, h, gu_w)).split(inter, 1)  # (B, I) each
+            gu = h @ gu_w if gu_b is None else torch.addmm(gu_b, h, gu_w)  # (B, 2I)
+            g, u = gu.split_with_sizes((inter, inter), 1)  # (B, I) each
             x.addmm_(silu(g).mul_(u), down_w)
             if down_b is not None:
                 x = x + down_b
