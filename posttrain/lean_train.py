@@ -66,6 +66,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .rollout.backends import llama_family_problem
+
 ENABLED = os.environ.get("POSTTRAIN_LEAN_TRAIN", "1").strip().lower() not in ("0", "false", "no", "off")
 LEAN_MODEL_TYPES = ("llama", "mistral", "qwen2")
 
@@ -90,11 +92,6 @@ def lean_train_support(model, seq_len: int | None = None) -> tuple[bool, str]:
         return False, "gradient checkpointing is enabled"
     if float(getattr(cfg, "attention_dropout", 0.0) or 0.0) != 0.0:
         return False, f"attention_dropout {cfg.attention_dropout} (the lean path has no dropout)"
-    if getattr(cfg, "hidden_act", None) != "silu":
-        return False, f"hidden_act {getattr(cfg, 'hidden_act', None)!r} (the lean path implements silu)"
-    for attr in ("final_logit_softcapping", "attn_logit_softcapping", "logit_scale"):
-        if getattr(cfg, attr, None) not in (None, 1.0):
-            return False, f"config.{attr} is set"
     window = getattr(cfg, "sliding_window", None)
     if window is not None and getattr(cfg, "use_sliding_window", True) is not False and \
             (seq_len is None or seq_len > window):
@@ -111,12 +108,9 @@ def lean_train_support(model, seq_len: int | None = None) -> tuple[bool, str]:
     devices = {p.device for p in params}
     if len(devices) != 1 or next(iter(devices)).type == "meta":
         return False, f"weights on several devices or on meta ({sorted(str(d) for d in devices)})"
-    rot = getattr(base, "rotary_emb", None)
-    if rot is None or not hasattr(rot, "inv_freq"):
-        return False, "no model.rotary_emb with inv_freq"
-    rope_type = str(getattr(rot, "rope_type", "default"))
-    if "dynamic" in rope_type or rope_type == "longrope":
-        return False, f"rope_type {rope_type!r} changes with sequence length"
+    why = llama_family_problem(cfg, base)
+    if why:
+        return False, why
     for mod in model.modules():
         if mod._forward_hooks or mod._forward_pre_hooks or hasattr(mod, "_hf_hook"):
             return False, f"a forward hook on {type(mod).__name__} (the lean path would skip it)"

@@ -80,6 +80,23 @@ def _linear_bias(m) -> torch.Tensor | None:
     return None if lin.bias is None else lin.bias.detach()
 
 
+def llama_family_problem(cfg, base) -> str | None:
+    """What in a Llama-family config / decoder the lean paths (this one and `posttrain.lean_train`) do not
+    implement: another activation, logit soft-capping or scaling, RoPE without static frequencies; None if nothing."""
+    if getattr(cfg, "hidden_act", None) != "silu":
+        return f"hidden_act {getattr(cfg, 'hidden_act', None)!r} (the lean path implements silu)"
+    for attr in ("final_logit_softcapping", "attn_logit_softcapping", "logit_scale"):
+        if getattr(cfg, attr, None) not in (None, 1.0):
+            return f"config.{attr} is set"
+    rot = getattr(base, "rotary_emb", None)
+    if rot is None or not hasattr(rot, "inv_freq"):
+        return "no model.rotary_emb with inv_freq"
+    rope_type = str(getattr(rot, "rope_type", "default"))
+    if "dynamic" in rope_type or rope_type == "longrope":
+        return f"rope_type {rope_type!r} changes with sequence length"
+    return None
+
+
 def lean_support(model, max_len: int) -> tuple[bool, str]:
     """Whether the lean path can run `model` for sequences up to `max_len` tokens, and why (not).
 
@@ -105,17 +122,9 @@ def lean_support(model, max_len: int) -> tuple[bool, str]:
         return False, "no plain lm_head / .model"
     if _weight(head).dtype != torch.float32:
         return False, f"dtype {_weight(head).dtype} (the lean path is fp32)"
-    if getattr(cfg, "hidden_act", None) != "silu":
-        return False, f"hidden_act {getattr(cfg, 'hidden_act', None)!r} (lean path implements silu)"
-    for attr in ("final_logit_softcapping", "attn_logit_softcapping", "logit_scale"):
-        if getattr(cfg, attr, None) not in (None, 1.0):
-            return False, f"config.{attr} is set"
-    rot = getattr(base, "rotary_emb", None)
-    if rot is None or not hasattr(rot, "inv_freq"):
-        return False, "no model.rotary_emb with inv_freq"
-    rope_type = getattr(rot, "rope_type", "default")
-    if "dynamic" in rope_type or rope_type == "longrope":
-        return False, f"rope_type {rope_type!r} changes with sequence length"
+    why = llama_family_problem(cfg, base)
+    if why:
+        return False, why
     window = getattr(cfg, "sliding_window", None)
     if getattr(cfg, "use_sliding_window", True) is False:
         window = None
