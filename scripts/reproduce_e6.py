@@ -36,7 +36,6 @@ import math
 import os
 import shutil
 import statistics
-import subprocess
 import sys
 import time
 import tokenize
@@ -48,6 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from posttrain.config import load_recipe  # noqa: E402
+from stage_runner import run_stage  # noqa: E402  (scripts/, this file's folder)
 
 ALGOS = ("dpo", "ppo")
 
@@ -79,21 +79,8 @@ MODELS_IN_MEMORY = {
 # ----------------------------------------------------------------------------- running stages
 def posttrain(stage: str, recipe: Path, output_dir: Path, threads: int, log: Path, *overrides: str) -> float:
     """Run `python -m posttrain STAGE` as a user would; returns the wall time; raises with the log's tail."""
-    cmd = [sys.executable, "-m", "posttrain", stage, "--recipe", str(recipe), f"run.output_dir={output_dir}",
-           f"run.threads={threads}", "run.quiet=true", *overrides]
-    env = dict(os.environ)
-    if threads:
-        env["OMP_NUM_THREADS"] = str(threads)
-    t0 = time.time()
-    log.parent.mkdir(parents=True, exist_ok=True)
-    with open(log, "w") as f:
-        f.write("$ " + " ".join(cmd) + "\n")
-        f.flush()
-        rc = subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
-    took = time.time() - t0
-    if rc != 0:
-        tail = "\n".join(log.read_text().splitlines()[-15:])
-        raise SystemExit(f"reproduce_e6: `posttrain {stage}` failed (exit {rc}); log {log}:\n{tail}")
+    took = run_stage([stage, "--recipe", str(recipe), f"run.output_dir={output_dir}", f"run.threads={threads}",
+                      "run.quiet=true", *overrides], log, threads, "reproduce_e6")
     print(f"[e6] posttrain {stage} {' '.join(overrides)}: {took:.0f}s", flush=True)
     return took
 

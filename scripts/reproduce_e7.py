@@ -43,13 +43,14 @@ import json
 import math
 import os
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from stage_runner import run_stage  # noqa: E402  (scripts/, this file's folder)
 
 RECIPE = "tiny-math"
 KS = (1, 4, 16)  # samples per problem for best-of-K / majority vote
@@ -62,21 +63,8 @@ QUICK = ["sft.max_steps=120", "grpo.max_steps=6", "grpo.eval_every=3", "grpo.eva
 # ----------------------------------------------------------------------------- running stages
 def posttrain(stage: str, output_dir: Path, threads: int, log: Path, overrides: list[str]) -> float:
     """Run `python -m posttrain STAGE --recipe tiny-math` as a user would; the wall time; raises with the log's tail."""
-    cmd = [sys.executable, "-m", "posttrain", stage, "--recipe", RECIPE, f"run.output_dir={output_dir}",
-           f"run.threads={threads}", *overrides]
-    env = dict(os.environ)
-    if threads:
-        env["OMP_NUM_THREADS"] = str(threads)
-    log.parent.mkdir(parents=True, exist_ok=True)
-    t0 = time.time()
-    with open(log, "w") as f:
-        f.write("$ " + " ".join(cmd) + "\n")
-        f.flush()
-        rc = subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
-    took = time.time() - t0
-    if rc != 0:
-        tail = "\n".join(log.read_text().splitlines()[-15:])
-        raise SystemExit(f"reproduce_e7: `posttrain {stage}` failed (exit {rc}); log {log}:\n{tail}")
+    took = run_stage([stage, "--recipe", RECIPE, f"run.output_dir={output_dir}", f"run.threads={threads}",
+                      *overrides], log, threads, "reproduce_e7")
     print(f"[e7] posttrain {stage}: {took:.0f}s (log {log})", flush=True)
     return took
 
