@@ -20,7 +20,8 @@ Lean path. For a plain fp32 Llama / Mistral / Qwen2 `*ForCausalLM` (not wrapped 
 torch.compile, no gradient checkpointing, no dropout) `sequence_logprobs` runs
 `posttrain.lean_train.lean_forward` instead of the model's forward, and a fused log-prob with a cheaper
 backward: the same numbers within fp32 rounding, ~10-14% faster for a tiny-model update step. Turn it
-off with `posttrain.lean_train.ENABLED = False` or POSTTRAIN_LEAN_TRAIN=0.
+off with `posttrain.lean_train.ENABLED = False` or POSTTRAIN_LEAN_TRAIN=0. Rows that share their prompt
+(GRPO's K completions per prompt) run that prompt once on this path (`lean_train.lean_forward_shared`).
 
 Memory. Logits are requested only from the first completion column on (`logits_to_keep`, when the
 model accepts it), and log-probs are gathered logit minus logsumexp: no (B, T, V) log_softmax copy is
@@ -77,6 +78,10 @@ def model_device(model) -> torch.device:
 
 
 # ------------------------------------------------------------------ log-probs
+
+# The lean path runs each distinct prompt once (`lean_train.lean_forward_shared`) when that leaves at most this
+# fraction of the batch's tokens: below ~0.9 the saved tokens outweigh the extra attention calls (tiny preset).
+SHARE_PREFIX_BELOW = 0.9
 
 
 def token_logprobs(logits: torch.Tensor, targets: torch.Tensor, temperature: float = 1.0,
@@ -135,8 +140,13 @@ def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tens
 
     if lean_train.lean_train_support(model, T)[0]:
         # Same numbers as the branch below (fp32 rounding), fewer ops: see posttrain/lean_train.py.
-        logits = lean_train.lean_forward(model, input_ids, attention_mask, position_ids_from_mask(attention_mask),
-                                         positions=slice(c - 1, T - 1), temperature=temperature)  # (B, T-c, V)
+        first, row_of = lean_train.shared_prefix_rows(input_ids, attention_mask, c)
+        if len(first) * c + B * (T - c) <= SHARE_PREFIX_BELOW * B * T:  # e.g. GRPO's K completions per prompt
+            logits = lean_train.lean_forward_shared(model, input_ids, attention_mask, c, first, row_of,
+                                                    temperature)  # (B, T-c, V)
+        else:
+            logits = lean_train.lean_forward(model, input_ids, attention_mask, position_ids_from_mask(attention_mask),
+                                             positions=slice(c - 1, T - 1), temperature=temperature)  # (B, T-c, V)
         logp, ent = lean_train.token_logprobs_fused(logits, input_ids[:, c:], return_entropy, entropy_grad)  # (B, T-c)
         return _place(logp, ent, completion_mask, c)
     kw: dict[str, Any] = {}

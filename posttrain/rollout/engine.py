@@ -88,7 +88,7 @@ def _weights_signature(model) -> tuple:
 def select_backend(model, max_len: int = 0, backend: str = "auto"):
     """(forward object, one-line reason): "lean" when supported, else the HF forward.
 
-    The lean path's fused weights are cached per model and rebuilt when any parameter changed since
+    The lean path's fused weights are cached per model and rewritten when any parameter changed since
     (tensor version counters), so a training step between two calls is always seen."""
     if backend not in ("auto", "lean", "hf"):
         raise ValueError(f"rollout backend must be 'auto', 'lean' or 'hf', got {backend!r}")
@@ -100,8 +100,14 @@ def select_backend(model, max_len: int = 0, backend: str = "auto"):
         sig = _weights_signature(inner)
         hit = _lean_cache.get(inner)
         if hit is None or hit[0] != sig:
+            layout = tuple((p.shape, p.dtype, p.device) for p in inner.parameters())
+            lean = hit[1] if hit is not None else None
             with torch.no_grad():
-                hit = (sig, LeanLlama(inner))
+                if lean is not None and hit[2] == layout:
+                    lean.load(inner)  # same parameter shapes, dtypes and devices: refresh in place
+                else:
+                    lean = LeanLlama(inner)
+            hit = (sig, lean, layout)
             _lean_cache[inner] = hit
         return hit[1], why
     if backend == "lean":

@@ -277,3 +277,78 @@ def test_fused_token_logprobs_equal_autograd():
     (g1,) = torch.autograd.grad((lp1 * w).sum() + (e1 * w.flip(0)).sum(), logits)
     torch.testing.assert_close(e1, e0)
     torch.testing.assert_close(g1, g0)
+
+
+def _grouped_batch(groups=3, k=4, P=6, S=8, seed=0):
+    """GRPO-like rows: `groups` prompts (left-padded to P columns, lengths differ) x `k` completions each
+    (right-padded to S columns, lengths differ), rows of a group consecutive except the last group, which is
+    interleaved with the others to check that grouping does not rely on order."""
+    g = torch.Generator().manual_seed(seed)
+    B, T = groups * k, P + S
+    ids = torch.randint(3, V, (B, T), generator=g)
+    am = torch.zeros(B, T, dtype=torch.long)
+    order = list(range(B))
+    order[-1], order[1] = order[1], order[-1]
+    for j, r in enumerate(order):
+        grp, i = divmod(j, k)
+        plen = P - grp  # prompt lengths P, P-1, ...
+        am[r, P - plen:P + S - i] = 1  # completion i of a group: S - i tokens
+        ids[r, :P] = torch.randint(3, V, (P,), generator=torch.Generator().manual_seed(100 + grp))
+    ids = ids * am
+    cm = am.clone()
+    cm[:, :P] = 0
+    return ids, am, cm
+
+
+@pytest.mark.parametrize("name", ["llama-mha-tied", "qwen2-gqa-bias", "llama-biases"])
+def test_shared_prefix_forward_equals_unshared(name):
+    """lean_forward_shared (each distinct prompt run once) gives the unshared lean forward's logits and every
+    parameter's gradient; sequence_logprobs takes it for GRPO-like batches and agrees with the HF forward."""
+    model = MODELS[name]()
+    ids, am, cm = _grouped_batch()
+    B, T = ids.shape
+    c = 6
+    first, row_of = lean_train.shared_prefix_rows(ids, am, c)
+    assert len(first) == 3 and sorted(row_of.tolist()) == [0] * 4 + [1] * 4 + [2] * 4
+    assert all(bool((ids[r, :c] == ids[first[row_of[r]], :c]).all()) for r in range(B))
+    w = torch.randn(B, T - c, V, generator=torch.Generator().manual_seed(3))
+
+    def run(shared):
+        model.zero_grad(set_to_none=True)
+        if shared:
+            out = lean_train.lean_forward_shared(model, ids, am, c, first, row_of, temperature=0.8)
+        else:
+            out = lean_train.lean_forward(model, ids, am, position_ids_from_mask(am), positions=slice(c - 1, T - 1),
+                                          temperature=0.8)
+        # only real positions matter (pad rows' outputs are never used): weight them out
+        keep = am[:, c - 1:T - 1].bool() & am[:, c:].bool()
+        (out * w * keep[..., None]).sum().backward()
+        return out.detach() * keep[..., None], {n: p.grad.clone() for n, p in model.named_parameters()}
+
+    out0, g0 = run(False)
+    out1, g1 = run(True)
+    torch.testing.assert_close(out1, out0, atol=1e-5, rtol=1e-5)
+    for n in g0:
+        torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
+
+    calls = []
+    real = lean_train.lean_forward_shared
+    try:
+        lean_train.lean_forward_shared = lambda *a, **k: calls.append(1) or real(*a, **k)
+        lp1, _ = sequence_logprobs(model, ids, am, cm)
+    finally:
+        lean_train.lean_forward_shared = real
+    assert calls, "sequence_logprobs did not share the prompts"
+    before = lean_train.ENABLED
+    lean_train.ENABLED = False
+    try:
+        lp0, _ = sequence_logprobs(model, ids, am, cm)
+    finally:
+        lean_train.ENABLED = before
+    torch.testing.assert_close(lp1, lp0, atol=1e-5, rtol=2e-6)
+
+
+def test_distinct_prompts_do_not_share():
+    ids, am, cm = _batch("both")
+    first, row_of = lean_train.shared_prefix_rows(ids, am, 5)
+    assert len(first) == ids.shape[0] and first[row_of].tolist() == list(range(ids.shape[0]))
