@@ -79,11 +79,19 @@ def reward_forward(model, input_ids: torch.Tensor, attention_mask: torch.Tensor)
     real checkpoints) the trainers leave the eos off (`append_eos=False`) so they still agree and a
     model saved here scores the same under a plain `AutoModelForSequenceClassification` call.
     Positions: position_ids = cumsum(attention_mask) - 1, as `posttrain.logprobs` uses.
+    A plain fp32 Llama-family model (not wrapped) runs `posttrain.lean_train.lean_hidden` instead of its own
+    forward: the same rewards within fp32 rounding (tested), fewer ops.
     """
     from posttrain.logprobs import position_ids_from_mask
 
     if not bool(attention_mask[:, -1].all()):
         raise ValueError("reward_forward needs LEFT-padded rows (every row's last column a real token)")
+    from posttrain import lean_train
+
+    if lean_train.lean_train_support(model, input_ids.shape[1], head="score")[0]:
+        # Same numbers within fp32 rounding, fewer ops (posttrain/lean_train.py): the score of the last column.
+        hidden = lean_train.lean_hidden(model, input_ids, attention_mask)[:, -1]  # (B, d)
+        return torch.nn.functional.linear(hidden, model.score.weight, model.score.bias)[:, 0].float()  # (B,)
     out = model(input_ids=input_ids, attention_mask=attention_mask,
                 position_ids=position_ids_from_mask(attention_mask))
     return out.logits[:, 0].float()  # (B,)

@@ -80,6 +80,25 @@ def _linear_bias(m) -> torch.Tensor | None:
     return None if lin.bias is None else lin.bias.detach()
 
 
+def sharded_problem(model) -> str | None:
+    """Why the lean paths cannot read `model`'s weights as whole tensors, or None: FSDP (1 or 2) or tensor
+    parallelism (modules wrapped in FullyShardedDataParallel, DTensor parameters) and DeepSpeed ZeRO-3
+    (partitioned parameters) keep only a shard of each weight outside the model's own forward."""
+    for m in model.modules():
+        if "FullyShardedDataParallel" in type(m).__name__ or type(m).__name__.startswith("FSDP"):
+            return f"FSDP-sharded module ({type(m).__name__})"
+    try:
+        from torch.distributed.tensor import DTensor
+    except ImportError:  # torch built without distributed
+        DTensor = ()
+    for p in model.parameters():
+        if isinstance(p, DTensor) or type(p).__name__ == "DTensor":
+            return "DTensor (FSDP2 / tensor-parallel) parameters"
+        if hasattr(p, "ds_id"):
+            return "DeepSpeed ZeRO-3 partitioned parameters"
+    return None
+
+
 def llama_family_problem(cfg, base) -> str | None:
     """What in a Llama-family config / decoder the lean paths (this one and `posttrain.lean_train`) do not
     implement: another activation, logit soft-capping or scaling, RoPE without static frequencies; None if nothing."""
@@ -132,6 +151,9 @@ def lean_support(model, max_len: int) -> tuple[bool, str]:
         return False, f"sequence length {max_len} exceeds the sliding window {window}"
     if any(hasattr(m, "_hf_hook") for m in model.modules()):
         return False, "accelerate device-map hooks (offloaded or dispatched weights)"
+    why = sharded_problem(model)
+    if why:
+        return False, why
     devices = {p.device for p in model.parameters()}
     if len(devices) != 1 or next(iter(devices)).type == "meta":
         return False, f"weights on several devices or on meta ({sorted(str(d) for d in devices)})"

@@ -127,7 +127,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from posttrain import loop
+from posttrain import lean_train, loop
 from posttrain.advantages import AdaptiveKLController, FixedKLController, gae, rewards_with_kl
 from posttrain.config import ConfigError, Resolved, save_resolved
 from posttrain.logprobs import (batched_logprobs, masked_mean, masked_sum, masked_whiten, position_ids_from_mask,
@@ -286,6 +286,8 @@ def token_values(value_model, input_ids: torch.Tensor, attention_mask: torch.Ten
 
     values[:, t] = V(input_ids[:, :t]) = the head on the hidden state of token t-1, i.e. the value of
     the state in which token t is chosen; column 0 is 0. Positions count real tokens (left padding).
+    A plain fp32 Llama-family value model runs `posttrain.lean_train.lean_hidden` (called inside DDP's forward
+    when wrapped, see `TokenValueModel`), else its decoder's own forward.
     """
     inner = unwrap_model(value_model)
     if hasattr(inner, "get_base_model"):  # peft (LoRA): the adapters live inside the base model's layers
@@ -293,8 +295,11 @@ def token_values(value_model, input_ids: torch.Tensor, attention_mask: torch.Ten
     base = getattr(inner, inner.base_model_prefix)
     dev = next(inner.parameters()).device
     input_ids, attention_mask = input_ids.to(dev), attention_mask.to(dev)
-    hidden = base(input_ids=input_ids, attention_mask=attention_mask,
-                  position_ids=position_ids_from_mask(attention_mask)).last_hidden_state  # (B, T, H)
+    if lean_train.lean_train_support(inner, input_ids.shape[1], head="score")[0]:  # same numbers, fewer ops
+        hidden = lean_train.lean_hidden(inner, input_ids, attention_mask)  # (B, T, H)
+    else:
+        hidden = base(input_ids=input_ids, attention_mask=attention_mask,
+                      position_ids=position_ids_from_mask(attention_mask)).last_hidden_state  # (B, T, H)
     v = inner.score(hidden).squeeze(-1).float()  # (B, T): value after token j
     return torch.cat([torch.zeros_like(v[:, :1]), v[:, :-1]], dim=1)  # (B, T)
 

@@ -352,3 +352,82 @@ def test_distinct_prompts_do_not_share():
     ids, am, cm = _batch("both")
     first, row_of = lean_train.shared_prefix_rows(ids, am, 5)
     assert len(first) == ids.shape[0] and first[row_of].tolist() == list(range(ids.shape[0]))
+
+
+def _seqcls(kind="llama"):
+    """A one-label sequence-classification model (reward / value model) with perturbed norms and biases."""
+    from transformers import LlamaConfig, LlamaForSequenceClassification, Qwen2Config, Qwen2ForSequenceClassification
+
+    cfg = dict(vocab_size=V, hidden_size=64, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
+               max_position_embeddings=128, pad_token_id=0, num_labels=1)
+    torch.manual_seed(0)
+    if kind == "llama":
+        model = LlamaForSequenceClassification(LlamaConfig(num_key_value_heads=4, **cfg))
+    else:
+        model = Qwen2ForSequenceClassification(Qwen2Config(num_key_value_heads=2, **cfg))
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if p.dim() == 1:
+                p.copy_(1.0 + 0.3 * torch.randn(p.shape, generator=g) if "norm" in name
+                        else 0.1 * torch.randn(p.shape, generator=g))
+    return model.float().eval()
+
+
+@pytest.mark.parametrize("kind", ["llama", "qwen2"])
+def test_reward_and_value_forwards_equal_hf(kind):
+    """scoring.reward_forward and ppo.token_values take lean_hidden for a plain sequence-classification model:
+    same rewards / values and gradients as the model's own forward."""
+    from posttrain.scoring import reward_forward
+    from posttrain.trainers.ppo import token_values
+
+    model = _seqcls(kind)
+    assert lean_train.lean_train_support(model, 13, head="score")[0]
+    assert not lean_train.lean_train_support(model, 13)[0]  # not a causal LM
+    ids, am, _ = _batch("left")
+    w = torch.randn(ids.shape, generator=torch.Generator().manual_seed(5))
+    real = am.clone()  # values[:, t] come from token t-1: compare where both are real (pad rows are never used)
+    real[:, 1:] *= am[:, :-1]
+    real[:, 0] = 0
+
+    def run(enabled, fn):
+        before = lean_train.ENABLED
+        lean_train.ENABLED = enabled
+        try:
+            model.zero_grad(set_to_none=True)
+            out = fn(model, ids, am)
+            (out * (w[:, 0] if out.dim() == 1 else w * real)).sum().backward()
+            return out.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}
+        finally:
+            lean_train.ENABLED = before
+
+    for fn in (reward_forward, token_values):
+        out0, g0 = run(False, fn)
+        out1, g1 = run(True, fn)
+        if out0.dim() == 2:
+            out0, out1 = out0 * real, out1 * real
+        torch.testing.assert_close(out1, out0, atol=1e-5, rtol=1e-5)
+        for n in g0:
+            torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
+
+
+def test_sharded_parameters_are_not_read_by_the_lean_paths():
+    """FSDP-wrapped modules or DeepSpeed ZeRO-3 partitioned parameters hold only a shard outside the model's own
+    forward: both lean paths (training forward, rollout engine) refuse them and say why."""
+    from posttrain.rollout.backends import lean_support
+
+    model = _llama()
+    assert lean_train.lean_train_support(model, 13)[0] and lean_support(model, 13)[0]
+    model.model.layers[0].mlp.up_proj.weight.ds_id = 7  # what ZeRO-3 puts on its parameters
+    for ok, why in (lean_train.lean_train_support(model, 13), lean_support(model, 13)):
+        assert not ok and "ZeRO-3" in why
+    del model.model.layers[0].mlp.up_proj.weight.ds_id
+
+    class FullyShardedDataParallel(nn.Module):  # stands in for torch's FSDP wrapper of one decoder layer
+        def __init__(self, inner):
+            super().__init__()
+            self._fsdp_wrapped_module = inner
+
+    model.model.add_module("wrapped", FullyShardedDataParallel(nn.Linear(2, 2)))
+    for ok, why in (lean_train.lean_train_support(model, 13), lean_support(model, 13)):
+        assert not ok and "FSDP" in why
