@@ -238,12 +238,14 @@ def _sdpa(model, q, k, v, allowed):
                                           enable_gqa=Hkv != H)
 
 
-def _rows_forward(model, input_ids: torch.Tensor, attention_mask: torch.Tensor,
-                  position_ids: torch.Tensor) -> torch.Tensor:
-    """(B, T) rows, each attending within itself -> the last layer's output (B, T, d), before the final norm."""
+def _rows_forward(model, input_ids: torch.Tensor, attention_mask: torch.Tensor | None,
+                  position_ids: torch.Tensor, allowed: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, T) rows, each attending within itself -> the last layer's output (B, T, d), before the final norm.
+    Who sees whom: causal over the real tokens of attention_mask, or `allowed` (B, 1, T, T) bool when given."""
     B, T = input_ids.shape
     H, Hkv, D, _ = _dims(model)
-    allowed = _allowed(attention_mask.bool())
+    if allowed is None:
+        allowed = _allowed(attention_mask.bool())
 
     def attend(q, k, v):  # (B*T, ., D) -> (B*T, H*D)
         o = _sdpa(model, q.view(B, T, H, D).transpose(1, 2), k.view(B, T, Hkv, D).transpose(1, 2),
@@ -281,6 +283,19 @@ def lean_hidden(model, input_ids: torch.Tensor, attention_mask: torch.Tensor,
     x = _rows_forward(model, input_ids, attention_mask, position_ids)
     norm = model.model.norm
     return _rms(x, norm.variance_epsilon) * norm.weight  # (B, T, d)
+
+
+def lean_packed_hidden(model, input_ids: torch.Tensor, position_ids: torch.Tensor,
+                       allowed: torch.Tensor) -> torch.Tensor:
+    """`logprobs.packed_logprobs`'s forward (rows packing several continuations of one prompt, a 4D mask):
+    input_ids, position_ids (B, T), allowed (B, T, T) bool (query, key) -> last layer output (B, T, d) before
+    the final norm (`lean_logits` turns chosen columns of it into logits)."""
+    return _rows_forward(model, input_ids, None, position_ids, allowed[:, None])
+
+
+def lean_logits(model, x: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
+    """(..., d) last-layer outputs (`lean_packed_hidden`) -> (..., V) logits: final norm and lm_head."""
+    return _head(model, x, temperature)
 
 
 def shared_prefix_rows(input_ids: torch.Tensor, attention_mask: torch.Tensor, c: int):

@@ -180,7 +180,8 @@ def packed_logprobs(model, input_ids: torch.Tensor, position_ids: torch.Tensor, 
     Returns (B, L) log p(targets), 0 where target_mask is 0; differentiable under autograd.
     The numbers equal `sequence_logprobs` on each (prompt + continuation) row alone (tested); the prompt
     runs through the model once instead of once per continuation. Needs a model that takes a 4D
-    attention mask and explicit position_ids (HF Llama-family models do).
+    attention mask and explicit position_ids (HF Llama-family models do). A plain fp32 Llama-family model
+    runs the lean forward (`lean_train.lean_packed_hidden`) instead, as `sequence_logprobs` does.
     """
     B, T = input_ids.shape
     if position_ids.shape != (B, T) or allowed.shape != (B, T, T):
@@ -193,6 +194,14 @@ def packed_logprobs(model, input_ids: torch.Tensor, position_ids: torch.Tensor, 
     pred_index, targets = pred_index.to(dev), targets.to(dev)
     if not bool(m.any()):
         return torch.zeros(targets.shape, device=dev, dtype=torch.float32)
+    from posttrain import lean_train
+
+    if lean_train.lean_train_support(model, T)[0]:  # same numbers within fp32 rounding, fewer ops
+        x = lean_train.lean_packed_hidden(model, input_ids.to(dev), position_ids.to(dev), allowed.to(dev))  # (B, T, d)
+        idx = pred_index.masked_fill(~m, 0)  # (B, L)
+        picked = lean_train.lean_logits(model, x.gather(1, idx[..., None].expand(-1, -1, x.shape[-1])))  # (B, L, V)
+        logp, _ = lean_train.token_logprobs_fused(picked, targets.masked_fill(~m, 0))  # (B, L)
+        return logp * m.to(logp.dtype)
     lo = int(pred_index[m].min())  # first column whose logits are needed
     kw: dict[str, Any] = {}
     if _accepts(model, "logits_to_keep") and lo > 0:

@@ -431,3 +431,47 @@ def test_sharded_parameters_are_not_read_by_the_lean_paths():
     model.model.add_module("wrapped", FullyShardedDataParallel(nn.Linear(2, 2)))
     for ok, why in (lean_train.lean_train_support(model, 13), lean_support(model, 13)):
         assert not ok and "FSDP" in why
+
+
+@pytest.mark.parametrize("name", ["llama-mha-tied", "qwen2-gqa-bias"])
+def test_packed_logprobs_lean_equals_hf(name):
+    """DPO's shared-prompt rows (prompt, chosen, rejected; a 4D mask): the lean packed forward gives the HF
+    forward's log-probs and gradients."""
+    from posttrain.logprobs import packed_logprobs
+    from posttrain.preferences import TokenizedPair, collate_shared_prompt
+
+    model = MODELS[name]()
+    g = torch.Generator().manual_seed(4)
+
+    def toks(n):
+        return torch.randint(3, V, (n,), generator=g).tolist()
+
+    pairs = [TokenizedPair(toks(p), toks(c), toks(r), i + 1) for i, (p, c, r) in enumerate([(4, 3, 5), (6, 2, 2), (3, 5, 4)])]
+    b = collate_shared_prompt(pairs, 0)
+    w = torch.randn(b["targets"].shape, generator=g)
+
+    def run(enabled):
+        before = lean_train.ENABLED
+        lean_train.ENABLED = enabled
+        try:
+            model.zero_grad(set_to_none=True)
+            lp = packed_logprobs(model, b["input_ids"], b["position_ids"], b["allowed"], b["pred_index"],
+                                 b["targets"], b["target_mask"])
+            (lp * w).sum().backward()
+            return lp.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}
+        finally:
+            lean_train.ENABLED = before
+
+    lp0, g0 = run(False)
+    calls = []
+    real = lean_train.lean_packed_hidden
+    lean_train.lean_packed_hidden = lambda *a, **k: calls.append(1) or real(*a, **k)
+    try:
+        lp1, g1 = run(True)
+    finally:
+        lean_train.lean_packed_hidden = real
+    assert calls, "the lean packed path was not taken"
+    torch.testing.assert_close(lp1, lp0, atol=1e-5, rtol=2e-6)
+    assert bool((lp1[b["target_mask"] == 0] == 0).all())
+    for n in g0:
+        torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
