@@ -1,6 +1,7 @@
 """A lean, differentiable forward for Llama-family causal LMs: the training-side twin of the rollout
 engine's `LeanLlama`, used by `posttrain.logprobs.sequence_logprobs` for the policy update (under
-autograd) and for reference / old-policy log-probs (under no-grad).
+autograd) and for reference / old-policy log-probs (under no-grad), by `logprobs.packed_logprobs` (DPO's
+shared-prompt rows), and, through `lean_hidden`, by the reward and value models' forwards.
 
 CPU: `python -c "import posttrain.lean_train"` (exercised by tests/posttrain/test_lean_train.py).
 Multi-GPU: a DDP / FSDP / peft wrapper is never run here (it needs its own forward for gradient sync or
@@ -12,8 +13,9 @@ right- or un-padded (B, T) batches with a 0/1 attention mask and explicit positi
 live parameters on every call (nothing is cached), so gradients reach each parameter as in the HF
 module and the optimizer may change them freely between calls.
 
-Supported (`lean_train_support`): the object passed is itself a `*ForCausalLM` `PreTrainedModel` of
-model type llama / mistral / qwen2 (not DDP/FSDP/peft/torch.compile-wrapped), fp32 weights on one
+Supported (`lean_train_support`): the object passed is itself a `*ForCausalLM` (or, with head="score",
+`*ForSequenceClassification`) `PreTrainedModel` of model type llama / mistral / qwen2 (not
+DDP/FSDP/peft/torch.compile-wrapped, no sharded parameters), fp32 weights on one
 device, plain nn.Linear projections (biases anywhere, as qwen2's q/k/v), Llama-style RMSNorm, silu
 MLP, RoPE with static frequencies (default, linear, llama3, yarn: `inv_freq` and `attention_scaling`
 read from the module; not dynamic / longrope), MHA or GQA, tied or untied embeddings,
