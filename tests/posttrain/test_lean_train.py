@@ -292,7 +292,7 @@ def _grouped_batch(groups=3, k=4, P=6, S=8, seed=0):
     for j, r in enumerate(order):
         grp, i = divmod(j, k)
         plen = P - grp  # prompt lengths P, P-1, ...
-        am[r, P - plen:P + S - i] = 1  # completion i of a group: S - i tokens
+        am[r, P - plen:P + max(S - i, 0)] = 1  # completion i of a group: S - i tokens (at least 0)
         ids[r, :P] = torch.randint(3, V, (P,), generator=torch.Generator().manual_seed(100 + grp))
     ids = ids * am
     cm = am.clone()
@@ -346,6 +346,21 @@ def test_shared_prefix_forward_equals_unshared(name):
     finally:
         lean_train.ENABLED = before
     torch.testing.assert_close(lp1, lp0, atol=1e-5, rtol=2e-6)
+
+
+@pytest.mark.parametrize("groups,k,S", [(1, 4, 1), (1, 3, 3), (2, 2, 2)])
+def test_shared_prefix_edge_shapes(groups, k, S):
+    """One prompt for every row, one-column completions, rows without any completion token: still equal."""
+    model = MODELS["llama-gqa-untied"]()
+    ids, am, _ = _grouped_batch(groups=groups, k=k, P=5, S=S)
+    B, T = ids.shape
+    first, row_of = lean_train.shared_prefix_rows(ids, am, 5)
+    assert len(first) == groups
+    with torch.no_grad():
+        out1 = lean_train.lean_forward_shared(model, ids, am, 5, first, row_of)
+        out0 = lean_train.lean_forward(model, ids, am, position_ids_from_mask(am), positions=slice(4, T - 1))
+    keep = am[:, 4:T - 1].bool()  # logits at real positions (the last prompt column is always real)
+    torch.testing.assert_close(out1[keep], out0[keep], atol=1e-5, rtol=1e-5)
 
 
 def test_distinct_prompts_do_not_share():
