@@ -81,7 +81,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .rollout.backends import llama_family_problem, sharded_problem
+from .rollout.backends import autocast_problem, llama_family_problem, sharded_problem
 
 ENABLED = os.environ.get("POSTTRAIN_LEAN_TRAIN", "1").strip().lower() not in ("0", "false", "no", "off")
 LEAN_MODEL_TYPES = ("llama", "mistral", "qwen2")
@@ -126,6 +126,11 @@ def lean_train_support(model, seq_len: int | None = None, head: str = "lm") -> t
     devices = {p.device for p in params}
     if len(devices) != 1 or next(iter(devices)).type == "meta":
         return False, f"weights on several devices or on meta ({sorted(str(d) for d in devices)})"
+    why = autocast_problem(next(iter(devices)))
+    if why:
+        return False, why
+    if "_original_forward" in vars(model):  # accelerate's mixed precision patched forward (autocast inside it)
+        return False, "accelerate mixed precision: the model's autocast forward is used"
     why = llama_family_problem(cfg, base)
     if why:
         return False, why

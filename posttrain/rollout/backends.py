@@ -80,6 +80,17 @@ def _linear_bias(m) -> torch.Tensor | None:
     return None if lin.bias is None else lin.bias.detach()
 
 
+def autocast_problem(device) -> str | None:
+    """The lean paths compute in fp32 with fp32 weights: under torch.autocast (mixed precision) the caller falls
+    back to the model's own forward, which follows the autocast policy (and returns fp32 log-probs from it)."""
+    kind = torch.device(device).type
+    try:
+        on = torch.is_autocast_enabled(kind)
+    except (TypeError, RuntimeError):  # a device type autocast does not know
+        on = False
+    return f"torch.autocast is on for {kind} (mixed precision)" if on else None
+
+
 def sharded_problem(model) -> str | None:
     """Why the lean paths cannot read `model`'s weights as whole tensors, or None: FSDP (1 or 2) or tensor
     parallelism (modules wrapped in FullyShardedDataParallel, DTensor parameters) and DeepSpeed ZeRO-3
@@ -141,6 +152,9 @@ def lean_support(model, max_len: int) -> tuple[bool, str]:
         return False, "no plain lm_head / .model"
     if _weight(head).dtype != torch.float32:
         return False, f"dtype {_weight(head).dtype} (the lean path is fp32)"
+    why = autocast_problem(_weight(head).device)
+    if why:
+        return False, why
     why = llama_family_problem(cfg, base)
     if why:
         return False, why

@@ -490,3 +490,45 @@ def test_packed_logprobs_lean_equals_hf(name):
     assert bool((lp1[b["target_mask"] == 0] == 0).all())
     for n in g0:
         torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
+
+
+def test_autocast_falls_back_to_the_model_forward():
+    """Under torch.autocast (mixed precision) both lean paths step aside: the HF forward follows the autocast
+    policy and sequence_logprobs still returns fp32 log-probs; generation still runs."""
+    from posttrain.rollout import generate
+    from posttrain.rollout.backends import lean_support
+
+    model = _llama()
+    ids, am, cm = _batch("both")
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        ok, why = lean_train.lean_train_support(model, 13)
+        assert not ok and "autocast" in why
+        ok, why = lean_support(model, 13)
+        assert not ok and "autocast" in why
+        with torch.no_grad():
+            lp, _ = sequence_logprobs(model, ids, am, cm)
+        out = generate(model, None, [[5, 6, 7]], max_new_tokens=3, greedy=True)
+    assert lp.dtype == torch.float32 and len(out[0].completion_ids) == 3
+    with torch.no_grad():
+        lp32, _ = sequence_logprobs(model, ids, am, cm)
+    assert float((lp - lp32).abs().max()) < 0.5  # bf16 compute: close, not equal
+    assert lean_train.lean_train_support(model, 13)[0]  # and back on outside autocast
+    # accelerate's mixed precision (Accelerator.prepare_model with native amp) keeps the original forward in
+    # `_original_forward` and wraps `forward` in autocast: that forward is used, not the lean one. Done by hand
+    # here, as accelerate does, because a real Accelerator would fix the process-wide AcceleratorState.
+    import types
+
+    prepared = model
+    prepared._original_forward = prepared.forward
+    inner_forward = type(prepared).forward
+
+    def autocast_forward(self, *a, **k):
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            return inner_forward(self, *a, **k)
+
+    prepared.forward = types.MethodType(autocast_forward, prepared)
+    ok, why = lean_train.lean_train_support(prepared, 13)
+    assert not ok and "mixed precision" in why
+    with torch.no_grad():
+        lp_mp, _ = sequence_logprobs(prepared, ids, am, cm)
+    assert lp_mp.dtype == torch.float32 and 0 < float((lp_mp - lp32).abs().max()) < 0.5  # bf16 compute happened
