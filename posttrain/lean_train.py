@@ -81,6 +81,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .logprobs import position_ids_from_mask
 from .rollout.backends import autocast_problem, llama_family_problem, sharded_problem
 
 ENABLED = os.environ.get("POSTTRAIN_LEAN_TRAIN", "1").strip().lower() not in ("0", "false", "no", "off")
@@ -286,7 +287,7 @@ def lean_hidden(model, input_ids: torch.Tensor, attention_mask: torch.Tensor,
     returns, for a supported `*ForSequenceClassification` (`lean_train_support(model, T, head="score")`) or
     `*ForCausalLM`; differentiable. position_ids default to cumsum(attention_mask) - 1 (clamped at 0)."""
     if position_ids is None:
-        position_ids = (attention_mask.long().cumsum(-1) - 1).clamp_(min=0)
+        position_ids = position_ids_from_mask(attention_mask)
     x = _rows_forward(model, input_ids, attention_mask, position_ids)
     norm = model.model.norm
     return _rms(x, norm.variance_epsilon) * norm.weight  # (B, T, d)
@@ -326,7 +327,7 @@ def lean_forward_shared(model, input_ids: torch.Tensor, attention_mask: torch.Te
     U, S = first.shape[0], T - c
     H, Hkv, D, _ = _dims(model)
     valid = attention_mask.bool()
-    pos = (attention_mask.long().cumsum(-1) - 1).clamp_(min=0)  # (B, T), as position_ids_from_mask
+    pos = position_ids_from_mask(attention_mask)  # (B, T)
     valid_p = valid[first, :c]  # (U, c)
     allowed_p = _allowed(valid_p)
     # Suffix query i (column c+i) sees prefix key j when real, suffix key j <= i when real or j == i.

@@ -26,37 +26,43 @@ def _one_thread():
     torch.set_num_threads(before)
 
 
-def _llama(**kw):
-    from transformers import LlamaConfig, LlamaForCausalLM
+_FAMILIES = {  # class-name prefix and the family's own defaults
+    "llama": ("Llama", dict(num_key_value_heads=4, tie_word_embeddings=True)),
+    "qwen2": ("Qwen2", dict(num_key_value_heads=2, tie_word_embeddings=False)),
+    "mistral": ("Mistral", dict(num_key_value_heads=2, sliding_window=None)),
+}
 
+
+def _build(family: str, head: str = "ForCausalLM", **kw):
+    """A small seeded model of `family` with head `ForCausalLM` or `ForSequenceClassification` (one label),
+    perturbed (`_perturb`); keyword arguments override the config."""
+    import transformers
+
+    prefix, defaults = _FAMILIES[family]
     cfg = dict(vocab_size=V, hidden_size=64, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
-               num_key_value_heads=4, max_position_embeddings=128, pad_token_id=0, tie_word_embeddings=True)
+               max_position_embeddings=128, pad_token_id=0, **defaults)
+    if head == "ForSequenceClassification":
+        cfg["num_labels"] = 1
     cfg.update(kw)
     torch.manual_seed(0)
-    return _perturb(LlamaForCausalLM(LlamaConfig(**cfg)))
+    config = getattr(transformers, f"{prefix}Config")(**cfg)
+    return _perturb(getattr(transformers, f"{prefix}{head}")(config))
+
+
+def _llama(**kw):
+    return _build("llama", **kw)
 
 
 def _qwen2(**kw):
-    from transformers import Qwen2Config, Qwen2ForCausalLM
-
-    cfg = dict(vocab_size=V, hidden_size=64, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
-               num_key_value_heads=2, max_position_embeddings=128, pad_token_id=0, tie_word_embeddings=False)
-    cfg.update(kw)
-    torch.manual_seed(0)
-    return _perturb(Qwen2ForCausalLM(Qwen2Config(**cfg)))
+    return _build("qwen2", **kw)
 
 
 def _mistral():
-    from transformers import MistralConfig, MistralForCausalLM
-
-    torch.manual_seed(0)
-    return _perturb(MistralForCausalLM(MistralConfig(
-        vocab_size=V, hidden_size=64, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
-        num_key_value_heads=2, max_position_embeddings=128, pad_token_id=0, sliding_window=None)))
+    return _build("mistral")
 
 
 def _perturb(model):
-    """Random norm weights and biases (not the init's ones/zeros) and larger logits, so every parameter's
+    """Random norm weights and biases (not the init's ones/zeros) and larger logits (causal LMs), so every parameter's
     gradient path is exercised; fp32, eval mode."""
     g = torch.Generator().manual_seed(1)
     with torch.no_grad():
@@ -64,7 +70,8 @@ def _perturb(model):
             if p.dim() == 1:
                 p.copy_(1.0 + 0.3 * torch.randn(p.shape, generator=g) if "norm" in name
                         else 0.1 * torch.randn(p.shape, generator=g))
-        model.lm_head.weight.mul_(10)
+        if hasattr(model, "lm_head"):
+            model.lm_head.weight.mul_(10)
     return model.float().eval()
 
 
@@ -371,22 +378,7 @@ def test_distinct_prompts_do_not_share():
 
 def _seqcls(kind="llama"):
     """A one-label sequence-classification model (reward / value model) with perturbed norms and biases."""
-    from transformers import LlamaConfig, LlamaForSequenceClassification, Qwen2Config, Qwen2ForSequenceClassification
-
-    cfg = dict(vocab_size=V, hidden_size=64, intermediate_size=96, num_hidden_layers=2, num_attention_heads=4,
-               max_position_embeddings=128, pad_token_id=0, num_labels=1)
-    torch.manual_seed(0)
-    if kind == "llama":
-        model = LlamaForSequenceClassification(LlamaConfig(num_key_value_heads=4, **cfg))
-    else:
-        model = Qwen2ForSequenceClassification(Qwen2Config(num_key_value_heads=2, **cfg))
-    g = torch.Generator().manual_seed(1)
-    with torch.no_grad():
-        for name, p in model.named_parameters():
-            if p.dim() == 1:
-                p.copy_(1.0 + 0.3 * torch.randn(p.shape, generator=g) if "norm" in name
-                        else 0.1 * torch.randn(p.shape, generator=g))
-    return model.float().eval()
+    return _build(kind, "ForSequenceClassification")
 
 
 @pytest.mark.parametrize("kind", ["llama", "qwen2"])
