@@ -62,7 +62,7 @@ zero-fill, a scatter and an add of a (B, T, V) tensor to the backward. Implement
 - Not tried / not kept: a vector_norm/hypot RMSNorm (as `LeanLlama`) measured ~1% per norm faster in
   isolation, not worth the extra rounding; explicit-matmul attention was slower than SDPA here (its
   backward keeps the (B, H, T, T) probabilities); a flip-based rotate_half was slower than the complex
-  multiply. `packed_logprobs` (DPO's shared-prompt rows, a 4D mask) still uses the HF forward.
+  multiply.
 
 Speed (tiny preset, vocab 1024, `sequence_logprobs` + backward + fused AdamW step, GRPO-like batches
 with left-padded prompts and right-padded completions, 1 thread, medians of 7 alternating runs, a
@@ -230,8 +230,9 @@ def _decoder(model, x: torch.Tensor, cis: torch.Tensor, attend) -> torch.Tensor:
     return x
 
 
-def _head(model, x: torch.Tensor, temperature: float) -> torch.Tensor:
-    """Final norm and lm_head: (..., d) -> (..., V) logits / temperature (folded into the norm weight)."""
+def lean_logits(model, x: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
+    """Final norm and lm_head: (..., d) last-layer outputs (e.g. `lean_packed_hidden`'s) -> (..., V) logits /
+    temperature (folded into the norm weight)."""
     base = model.model
     gf = base.norm.weight if temperature == 1.0 else base.norm.weight / temperature
     head = model.lm_head
@@ -278,7 +279,7 @@ def lean_forward(model, input_ids: torch.Tensor, attention_mask: torch.Tensor, p
         x = x[:, positions]
     elif logits_to_keep:
         x = x[:, -logits_to_keep:]
-    return _head(model, x, temperature)  # (B, K, V)
+    return lean_logits(model, x, temperature)  # (B, K, V)
 
 
 def lean_hidden(model, input_ids: torch.Tensor, attention_mask: torch.Tensor,
@@ -299,11 +300,6 @@ def lean_packed_hidden(model, input_ids: torch.Tensor, position_ids: torch.Tenso
     input_ids, position_ids (B, T), allowed (B, T, T) bool (query, key) -> last layer output (B, T, d) before
     the final norm (`lean_logits` turns chosen columns of it into logits)."""
     return _rows_forward(model, input_ids, None, position_ids, allowed[:, None])
-
-
-def lean_logits(model, x: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
-    """(..., d) last-layer outputs (`lean_packed_hidden`) -> (..., V) logits: final norm and lm_head."""
-    return _head(model, x, temperature)
 
 
 def shared_prefix_rows(input_ids: torch.Tensor, attention_mask: torch.Tensor, c: int):
@@ -356,7 +352,7 @@ def lean_forward_shared(model, input_ids: torch.Tensor, attention_mask: torch.Te
     x = _decoder(model, F.embedding(ids, emb.weight, emb.padding_idx), _cis(model, positions), attend)
     last = x[:Np].view(U, c, -1)[:, -1].index_select(0, row_of)  # (B, d): column c-1 of each row
     x = torch.cat([last[:, None], x[Np:].view(B, S, -1)[:, :S - 1]], 1)  # (B, S, d): columns c-1 .. T-2
-    return _head(model, x, temperature)  # (B, T-c, V)
+    return lean_logits(model, x, temperature)  # (B, T-c, V)
 
 
 class _TargetLogprob(torch.autograd.Function):

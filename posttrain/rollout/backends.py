@@ -11,8 +11,8 @@ Both expose the calls the engine's loop uses:
 Lean path (`LeanLlama`; model types llama / mistral / qwen2, fp32, plain nn.Linear projections, RoPE
 whose frequencies do not depend on the sequence length):
 - Weights are read from the HF module and rearranged once (cached per model by the engine, rewritten
-  in place by `load` when a parameter changes: one strided multiply per matrix, ~0.5 ms on `tiny`): q/k/v fused into one (d, (H+2Hkv)*Dh) matrix and gate/up into one
-  (d, 2I) matrix, stored transposed for `x @ W`; each RMSNorm weight (times sqrt(d)) and the softmax
+  in place by `load` when a parameter changes: one strided multiply per matrix, ~1.3 ms on `tiny`):
+  q/k/v fused into one (d, (H+2Hkv)*Dh) matrix and gate/up into one (d, 2I) matrix, stored transposed for `x @ W`; each RMSNorm weight (times sqrt(d)) and the softmax
   scale 1/sqrt(Dh) are folded into the matrix that follows, so a norm is 3 small ops
   (x / hypot(|x|, sqrt(d*eps))).
 - RoPE: the q/k rows of each head are permuted from the half-split pairing (x_i, x_{i+Dh/2}) that
