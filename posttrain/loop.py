@@ -142,12 +142,13 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
         ctx = accelerator.no_sync(model) if (not last and accelerator.num_processes > 1) else _null()
         with ctx:
             loss, metrics = loss_fn(mb)
-            bad = 0.0 if bool(torch.isfinite(loss)) else 1.0
+            finite = bool(torch.isfinite(loss))
+            bad = 0.0 if finite else 1.0
             if accelerator.num_processes > 1:  # every process stops at the same micro-batch, none waits in backward
                 bad = global_sum(accelerator, bad)
             if bad:
                 optimizer.zero_grad(set_to_none=True)
-                where = f"({loss.item()})" if not bool(torch.isfinite(loss)) else f"on {int(bad)} other process(es)"
+                where = f"({loss.item()})" if not finite else f"on {int(bad)} other process(es)"
                 raise TrainingError(f"non-finite loss {where} at step {step}; stopping. "
                                     "The last good checkpoint is intact: lower the learning rate and resume.")
             accelerator.backward(loss)
