@@ -34,7 +34,7 @@ from __future__ import annotations
 import json
 from typing import Sequence
 
-from posttrain.models import ModelError
+from posttrain.errors import ModelError
 
 _HEADER_START = "{#- posttrain:system_prompt -#}"
 _HEADER_END = "{#- /posttrain:system_prompt -#}"

@@ -17,25 +17,12 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 from posttrain.config import (SHARED_SECTIONS, ConfigError, Resolved, check_stage_sections, describe_fields,
                               list_recipes, resolve)
-
-
-# ----------------------------------------------------------------------------- eval stage config
-@dataclass
-class EvalConfig:
-    model: str = ""
-    """Model directory to evaluate; empty: the recipe's SFT model (trained first if missing)."""
-    reference: str = ""
-    """Model directory to compute the gold-preference win-rate against; empty: the untrained base model."""
-    rows: int = 200
-    """Held-out prompts to evaluate."""
-    max_new_tokens: int = 64
-    """Generation budget per completion."""
 
 
 # ----------------------------------------------------------------------------- stages
@@ -63,39 +50,13 @@ class Stage:
 STAGES: dict[str, Stage] = {
     "sft": Stage("sft", "supervised fine-tuning (builds the base model first if needed)",
                  "posttrain.trainers.sft", "SFTConfig"),
-    "eval": Stage("eval", "gold metrics and win-rate of a model on held-out prompts", "posttrain.cli", "EvalConfig"),
+    "eval": Stage("eval", "gold metrics and win-rate of a model on held-out prompts", "posttrain.evaluation", "EvalConfig"),
     "prefs": Stage("prefs", "preference pairs: samples of the SFT model ranked by the gold preference (or a file)", "posttrain.preferences", "PrefsConfig"),
     "rm": Stage("rm", "reward model: Bradley-Terry on preference pairs, a scalar head on the SFT model", "posttrain.trainers.reward", "RMConfig"),
     "dpo": Stage("dpo", "DPO / IPO / hinge on preference pairs, then gold win-rate against the SFT model", "posttrain.trainers.dpo", "DPOConfig"),
     "grpo": Stage("grpo", "GRPO with verifier and/or reward-model rewards, then held-out accuracy against the SFT model", "posttrain.trainers.grpo", "GRPOConfig"),
     "ppo": Stage("ppo", "PPO-for-RLHF against the reward model (or gold), then gold win-rate against the SFT model", "posttrain.trainers.ppo", "PPOConfig"),
 }
-
-
-def train(res: Resolved, ensure: Callable[[str], Path]) -> Path:
-    """The eval stage (lives here because it only glues evaluation to the run directory)."""
-    from posttrain import evaluation, loop, tasks
-    from posttrain.models import load_model, load_tokenizer
-
-    cfg: EvalConfig = res.stage_cfg
-    rows = tasks.load_split(res.task, "eval")[: cfg.rows]
-    model_dir = Path(cfg.model) if cfg.model else ensure("sft")
-    ref_dir = Path(cfg.reference) if cfg.reference else ensure("base")
-    tok = load_tokenizer(model_dir, res.model)
-    model = load_model(model_dir, res.model.dtype)
-    ref_tok = load_tokenizer(ref_dir, res.model)
-    ref = load_model(ref_dir, res.model.dtype)
-    print(f"[eval] model {model_dir} vs reference {ref_dir} on {len(rows)} held-out prompts of {res.task.name}")
-    m = evaluation.evaluate_model(res.task.name, model, tok, rows, max_new_tokens=cfg.max_new_tokens)
-    r = evaluation.evaluate_model(res.task.name, ref, ref_tok, rows, max_new_tokens=cfg.max_new_tokens)
-    m["win_rate_vs_reference"] = evaluation.win_rate(res.task.name, rows, m["_completions"], r["_completions"])
-    r["win_rate_vs_reference"] = 0.5
-    print(evaluation.format_comparison({"model": m, "reference": r}, res.task.name))
-    out_dir = res.stage_dir()
-    loop.write_json(out_dir / "eval.json", {"model": str(model_dir), "reference": str(ref_dir),
-                                            "metrics": {k: v for k, v in m.items() if not k.startswith("_")},
-                                            "reference_metrics": {k: v for k, v in r.items() if not k.startswith("_")}})
-    return out_dir / "eval.json"
 
 
 # ----------------------------------------------------------------------------- chaining

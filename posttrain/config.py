@@ -20,9 +20,8 @@ from typing import Any, Literal
 
 import yaml
 
-
-class ConfigError(ValueError):
-    """A user-caused config problem: one line naming the key and how to fix it."""
+from posttrain.errors import ConfigError  # noqa: F401  (raised here; importable from here as before)
+from posttrain.runtime import dtype_problem
 
 
 # ----------------------------------------------------------------------------- shared sections
@@ -382,8 +381,6 @@ def resolve(recipe: str, stage: str, stage_cls: type, overrides: list[str] | Non
         raise ConfigError(f"config keys lora.r / lora.alpha / lora.dropout: need r >= 1, alpha > 0, 0 <= dropout < 1 "
                           f"(got {res.lora.r}, {res.lora.alpha}, {res.lora.dropout})")
     if res.model.dtype != "float32":
-        from posttrain.models import dtype_problem
-
         problem = dtype_problem(res.model.dtype)
         if problem:
             raise ConfigError(problem)

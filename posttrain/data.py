@@ -50,6 +50,8 @@ from typing import Any, Iterable, Iterator, Literal, Sequence
 
 import datasets
 
+from posttrain.errors import DataError  # noqa: F401  (raised here; importable from here as before)
+
 Schema = Literal["sft", "preference", "verifiable"]
 
 TEXT_FIELDS: dict[str, tuple[str, ...]] = {
@@ -61,9 +63,6 @@ JSON_FIELDS = ("answer", "meta")  # stored as f"{name}_json" text columns
 LOAD_EXTENSIONS = (".jsonl", ".json", ".parquet")
 SAVE_EXTENSIONS = (".jsonl", ".parquet")
 
-
-class DataError(ValueError):
-    """A bad data file or row, in one line: ``<file>: row <N>: field '<name>': <problem>``."""
 
 
 def _check_schema(schema: str) -> None:

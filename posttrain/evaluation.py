@@ -1,12 +1,30 @@
 """Task evaluation through the rollout engine: generate on held-out prompts, score with the task's gold metric.
 
-`posttrain eval --recipe tiny-summarize [model=PATH] [reference=PATH]` prints:
-gold quality, length, fraction in the length band, and the gold-preference win-rate of
-the model against a reference model (ties count half).
+`posttrain eval --recipe tiny-summarize [model=PATH] [reference=PATH]` (the eval stage, `train` below)
+prints the task's held-out metrics (tiny-summarize: gold quality, length, fraction in the length band)
+and the gold-preference win-rate of the model against a reference model (ties count half).
+
+For the preference trainers (DPO, PPO), task-agnostic: `policy_eval` (the periodic gold / proxy / KL
+metrics, logged as gold/<name> for the task's `GOLD_METRICS`) and `compare_with_sft` (the final held-out
+comparison with the SFT model, printed and returned for eval.json).
 """
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+
+@dataclass
+class EvalConfig:
+    model: str = ""
+    """Model directory to evaluate; empty: the recipe's SFT model (trained first if missing)."""
+    reference: str = ""
+    """Model directory to compute the gold-preference win-rate against; empty: the untrained base model."""
+    rows: int = 200
+    """Held-out prompts to evaluate."""
+    max_new_tokens: int = 64
+    """Generation budget per completion."""
 
 
 def complete(model, tokenizer, prompts: list[str], *, max_new_tokens: int = 64, greedy: bool = True,
@@ -74,7 +92,7 @@ def compare_policy(task_name: str, model, tokenizer, rows: list[dict[str, Any]],
     metas = [r["meta"] for r in rows]
     out["win_rate"] = win_rate(task_name, rows, comps, baseline)
     task = tasks.get_task(task_name)
-    if hasattr(task, "gold_prefer"):  # the counts behind the rate: against a strong baseline most are ties
+    if task.gold_prefer is not None:  # the counts behind the rate: against a strong baseline most are ties
         prefs = [task.gold_prefer(m, c, b) for m, c, b in zip(metas, comps, baseline)]
         out.update(wins=prefs.count(1), ties=prefs.count(0), losses=prefs.count(-1))
     out["gold_reward"] = GoldScorer(task_name, gold_length_weight).score(prompts, comps, metas).mean()
@@ -147,3 +165,86 @@ def plot_gold_vs_proxy(metrics: list[dict[str, Any]], path, *, title: str = "") 
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return f"wrote {path}"
+
+
+# ----------------------------------------------------------------------------- DPO / PPO against the SFT model
+def gold_metrics(task_name: str, r: dict[str, Any]) -> dict[str, float]:
+    """The logged gold metrics of a `compare_policy` result: gold/reward, gold/<name> for each of the task's
+    GOLD_METRICS, gold/win_rate, and proxy/reward when a proxy scored it."""
+    from posttrain import tasks
+
+    task = tasks.get_task(task_name)
+    m = {"gold/reward": r["gold_reward"]}
+    m.update({f"gold/{name}": r[key] for name, key in task.GOLD_METRICS.items() if key in r})
+    m["gold/win_rate"] = r["win_rate"]
+    if "proxy_reward" in r:
+        m["proxy/reward"] = r["proxy_reward"]
+    return m
+
+
+def policy_eval(task_name: str, policy, reference, tokenizer, rows: list[dict[str, Any]], baseline: list[str], *,
+                max_new_tokens: int = 64, proxy=None, seed: int = 0) -> dict[str, float]:
+    """A preference-trained policy's periodic evaluation on held-out `rows`: `gold_metrics` of its greedy
+    completions against the `baseline` completions (the SFT model's), and its KL to `reference`
+    (`kl_to_reference`, seeded)."""
+    r = compare_policy(task_name, policy, tokenizer, rows, baseline[: len(rows)], max_new_tokens=max_new_tokens,
+                       proxy=proxy)
+    m = gold_metrics(task_name, r)
+    m["kl"] = kl_to_reference(policy, reference, tokenizer, [x["prompt"] for x in rows],
+                              max_new_tokens=max_new_tokens, seed=seed)
+    return m
+
+
+def compare_with_sft(stage: str, task_name: str, policy, reference, tokenizer, rows: list[dict[str, Any]],
+                     baseline: list[str], *, max_new_tokens: int = 64, proxy=None, seed: int = 0,
+                     say: Callable[[str], None] = print) -> dict[str, Any]:
+    """The final held-out comparison of a `stage` policy (dpo, ppo) with the SFT model whose greedy completions
+    are `baseline`: every task metric, gold reward, win-rate (wins / ties / losses), proxy reward, KL to the
+    reference; printed as a table plus the headline lines, and returned for eval.json
+    ({"sft": ..., stage: ..., "samples": the first 10 prompts with both completions})."""
+    from posttrain import tasks
+
+    base = baseline[: len(rows)]
+    sft_m = compare_policy(task_name, None, tokenizer, rows, base, proxy=proxy, completions=base)
+    new_m = compare_policy(task_name, policy, tokenizer, rows, base, max_new_tokens=max_new_tokens, proxy=proxy)
+    new_m["kl"] = kl_to_reference(policy, reference, tokenizer, [r["prompt"] for r in rows],
+                                  max_new_tokens=max_new_tokens, seed=seed)
+    sft_m["kl"] = 0.0
+    say(format_comparison({"sft": sft_m, stage: new_m}, task_name))
+    shown = [("gold reward", "gold_reward")] + list(tasks.get_task(task_name).GOLD_METRICS.items())
+    say(f"[{stage}] " + ", ".join(f"{name} {sft_m[key]:.3f} -> {new_m[key]:.3f}" for name, key in shown if key in new_m)
+        + f", KL to SFT {new_m['kl']:.2f} nats")
+    counts = f": {new_m['wins']} wins, {new_m['ties']} ties, {new_m['losses']} losses" if "wins" in new_m else ""
+    say(f"[{stage}] gold win-rate of the {stage.upper()} model against the SFT model: {new_m['win_rate']:.3f} "
+        f"({len(rows)} held-out prompts{counts}; ties count half)")
+    return {"sft": {k: v for k, v in sft_m.items() if not k.startswith("_")},
+            stage: {k: v for k, v in new_m.items() if not k.startswith("_")},
+            "samples": [{"prompt": r["prompt"][-200:], "sft": b, stage: c}
+                        for r, b, c in zip(rows[:10], base, new_m["_completions"])]}
+
+
+# ----------------------------------------------------------------------------- the eval stage
+def train(res, ensure) -> Path:
+    """`posttrain eval`: the task's held-out metrics of a model and its gold win-rate against a reference model."""
+    from posttrain import loop, tasks
+    from posttrain.models import load_model, load_tokenizer
+
+    cfg: EvalConfig = res.stage_cfg
+    rows = tasks.load_split(res.task, "eval")[: cfg.rows]
+    model_dir = Path(cfg.model) if cfg.model else ensure("sft")
+    ref_dir = Path(cfg.reference) if cfg.reference else ensure("base")
+    tok = load_tokenizer(model_dir, res.model)
+    model = load_model(model_dir, res.model.dtype)
+    ref_tok = load_tokenizer(ref_dir, res.model)
+    ref = load_model(ref_dir, res.model.dtype)
+    print(f"[eval] model {model_dir} vs reference {ref_dir} on {len(rows)} held-out prompts of {res.task.name}")
+    m = evaluate_model(res.task.name, model, tok, rows, max_new_tokens=cfg.max_new_tokens)
+    r = evaluate_model(res.task.name, ref, ref_tok, rows, max_new_tokens=cfg.max_new_tokens)
+    m["win_rate_vs_reference"] = win_rate(res.task.name, rows, m["_completions"], r["_completions"])
+    r["win_rate_vs_reference"] = 0.5
+    print(format_comparison({"model": m, "reference": r}, res.task.name))
+    out_dir = res.stage_dir()
+    loop.write_json(out_dir / "eval.json", {"model": str(model_dir), "reference": str(ref_dir),
+                                            "metrics": {k: v for k, v in m.items() if not k.startswith("_")},
+                                            "reference_metrics": {k: v for k, v in r.items() if not k.startswith("_")}})
+    return out_dir / "eval.json"

@@ -18,10 +18,10 @@ from column 0, padding included. Wrappers (accelerate/DDP, peft, torch.compile) 
 
 Lean path. For a plain fp32 Llama / Mistral / Qwen2 `*ForCausalLM` (not wrapped by DDP / peft /
 torch.compile, no gradient checkpointing, no dropout) `sequence_logprobs` runs
-`posttrain.lean_train.lean_forward` instead of the model's forward, and a fused log-prob with a cheaper
-backward: the same numbers within fp32 rounding, ~10-14% faster for a tiny-model update step. Turn it
-off with `posttrain.lean_train.ENABLED = False` or POSTTRAIN_LEAN_TRAIN=0. Rows that share their prompt
-(GRPO's K completions per prompt) run that prompt once on this path (`lean_train.lean_forward_shared`).
+`posttrain.lean.lean_forward` instead of the model's forward, and a fused log-prob with a cheaper
+backward: the same numbers within fp32 rounding, faster for a tiny-model update step (RESULTS.md). Turn it
+off with `posttrain.lean.ENABLED = False` or POSTTRAIN_LEAN_TRAIN=0. Rows that share their prompt
+(GRPO's K completions per prompt) run that prompt once on this path (`lean.lean_forward_shared`).
 
 Memory. Logits are requested only from the first completion column on (`logits_to_keep`, when the
 model accepts it), and log-probs are gathered logit minus logsumexp: no (B, T, V) log_softmax copy is
@@ -29,57 +29,17 @@ made. Under autograd the logits themselves are kept for the backward pass (as fo
 """
 from __future__ import annotations
 
-import inspect
 from typing import Any, Mapping
 
 import torch
-from torch import nn
 
-# ------------------------------------------------------------------ model plumbing
-
-
-def unwrap_model(model):
-    """The HF model inside DDP / accelerate / torch.compile wrappers (peft models are returned as they are)."""
-    seen = set()
-    while id(model) not in seen:
-        seen.add(id(model))
-        if hasattr(model, "_orig_mod"):
-            model = model._orig_mod
-        elif isinstance(model, (nn.parallel.DistributedDataParallel, nn.DataParallel)) or (
-            isinstance(getattr(model, "module", None), nn.Module) and not hasattr(model, "config")
-        ):
-            model = model.module
-    return model
-
-
-def _base_forward(model):
-    m = unwrap_model(model)
-    if hasattr(m, "get_base_model"):  # peft
-        m = m.get_base_model()
-    return m.forward
-
-
-def _accepts(model, name: str) -> bool:
-    try:
-        return name in inspect.signature(_base_forward(model)).parameters
-    except (TypeError, ValueError):
-        return False
-
-
-def position_ids_from_mask(attention_mask: torch.Tensor) -> torch.Tensor:
-    """(B, T) 0/1 mask -> (B, T) positions counting real tokens only (pads get 0)."""
-    return (attention_mask.long().cumsum(-1) - 1).clamp_(min=0)
-
-
-def model_device(model) -> torch.device:
-    for p in model.parameters():
-        return p.device
-    return torch.device("cpu")
-
+from posttrain.lean import train as lean
+from posttrain.lean.support import lean_support
+from posttrain.models import accepts, model_device, position_ids_from_mask, unwrap_model  # noqa: F401
 
 # ------------------------------------------------------------------ log-probs
 
-# The lean path runs each distinct prompt once (`lean_train.lean_forward_shared`) when that leaves at most this
+# The lean path runs each distinct prompt once (`lean.lean_forward_shared`) when that leaves at most this
 # fraction of the batch's tokens: below ~0.9 the saved tokens outweigh the extra attention calls (tiny preset).
 SHARE_PREFIX_BELOW = 0.9
 
@@ -136,23 +96,21 @@ def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tens
         zeros = torch.zeros(B, T, device=dev, dtype=dtype)
         return zeros, (zeros.clone() if return_entropy else None)
     c = int(cols[0])  # first scored column; logits needed from position c-1 on
-    from posttrain import lean_train
-
-    if lean_train.lean_train_support(model, T)[0]:
-        # Same numbers as the branch below (fp32 rounding), fewer ops: see posttrain/lean_train.py.
-        first, row_of = lean_train.shared_prefix_rows(input_ids, attention_mask, c)
+    if lean_support(model, T, mode="train")[0]:
+        # Same numbers as the branch below (fp32 rounding), fewer ops: see posttrain/lean.py.
+        first, row_of = lean.shared_prefix_rows(input_ids, attention_mask, c)
         if len(first) * c + B * (T - c) <= SHARE_PREFIX_BELOW * B * T:  # e.g. GRPO's K completions per prompt
-            logits = lean_train.lean_forward_shared(model, input_ids, attention_mask, c, first, row_of,
+            logits = lean.lean_forward_shared(model, input_ids, attention_mask, c, first, row_of,
                                                     temperature)  # (B, T-c, V)
         else:
-            logits = lean_train.lean_forward(model, input_ids, attention_mask, position_ids_from_mask(attention_mask),
+            logits = lean.lean_forward(model, input_ids, attention_mask, position_ids_from_mask(attention_mask),
                                              positions=slice(c - 1, T - 1), temperature=temperature)  # (B, T-c, V)
-        logp, ent = lean_train.token_logprobs_fused(logits, input_ids[:, c:], return_entropy, entropy_grad)  # (B, T-c)
+        logp, ent = lean.token_logprobs_fused(logits, input_ids[:, c:], return_entropy, entropy_grad)  # (B, T-c)
         return _place(logp, ent, completion_mask, c)
     kw: dict[str, Any] = {}
-    if _accepts(model, "position_ids"):
+    if accepts(model, "position_ids"):
         kw["position_ids"] = position_ids_from_mask(attention_mask)
-    keep_kw = _accepts(model, "logits_to_keep") and c > 1
+    keep_kw = accepts(model, "logits_to_keep") and c > 1
     if keep_kw:
         kw["logits_to_keep"] = T - c + 1
     logits = model(input_ids=input_ids, attention_mask=attention_mask, **kw).logits  # (B, T or T-c+1, V)
@@ -181,7 +139,7 @@ def packed_logprobs(model, input_ids: torch.Tensor, position_ids: torch.Tensor, 
     The numbers equal `sequence_logprobs` on each (prompt + continuation) row alone (tested); the prompt
     runs through the model once instead of once per continuation. Needs a model that takes a 4D
     attention mask and explicit position_ids (HF Llama-family models do). A plain fp32 Llama-family model
-    runs the lean forward (`lean_train.lean_packed_hidden`) instead, as `sequence_logprobs` does.
+    runs the lean forward (`lean.lean_packed_hidden`) instead, as `sequence_logprobs` does.
     """
     B, T = input_ids.shape
     if position_ids.shape != (B, T) or allowed.shape != (B, T, T):
@@ -194,17 +152,15 @@ def packed_logprobs(model, input_ids: torch.Tensor, position_ids: torch.Tensor, 
     pred_index, targets = pred_index.to(dev), targets.to(dev)
     if not bool(m.any()):
         return torch.zeros(targets.shape, device=dev, dtype=torch.float32)
-    from posttrain import lean_train
-
-    if lean_train.lean_train_support(model, T)[0]:  # same numbers within fp32 rounding, fewer ops
-        x = lean_train.lean_packed_hidden(model, input_ids.to(dev), position_ids.to(dev), allowed.to(dev))  # (B, T, d)
+    if lean_support(model, T, mode="train")[0]:  # same numbers within fp32 rounding, fewer ops
+        x = lean.lean_packed_hidden(model, input_ids.to(dev), position_ids.to(dev), allowed.to(dev))  # (B, T, d)
         idx = pred_index.masked_fill(~m, 0)  # (B, L)
-        picked = lean_train.lean_logits(model, x.gather(1, idx[..., None].expand(-1, -1, x.shape[-1])))  # (B, L, V)
-        logp, _ = lean_train.token_logprobs_fused(picked, targets.masked_fill(~m, 0))  # (B, L)
+        picked = lean.lean_logits(model, x.gather(1, idx[..., None].expand(-1, -1, x.shape[-1])))  # (B, L, V)
+        logp, _ = lean.token_logprobs_fused(picked, targets.masked_fill(~m, 0))  # (B, L)
         return logp * m.to(logp.dtype)
     lo = int(pred_index[m].min())  # first column whose logits are needed
     kw: dict[str, Any] = {}
-    if _accepts(model, "logits_to_keep") and lo > 0:
+    if accepts(model, "logits_to_keep") and lo > 0:
         kw["logits_to_keep"] = T - lo
     else:
         lo = 0

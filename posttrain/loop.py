@@ -4,15 +4,22 @@ Every trainer composes these; none of them owns the loop. The same code runs on 
 process and under `accelerate launch` (DDP/FSDP/DeepSpeed): the Accelerator decides.
 
 - `setup(seed, threads)`: seeds python/numpy/torch, tunes glibc malloc, creates the `Accelerator`.
+- `start_run(res, seed, resume)`: `setup`, then the run directory and its config.yaml (main process);
+  returns the accelerator and `say` (prints on the main process only).
+- `resume_run(...)`: with resume=true, the newest checkpoint restored in place and the metrics rows
+  logged after it dropped; returns its step and extra state (step 0 when starting fresh).
+- `weights_finite` / `check_weights`, and `naming_checkpoint`: a TrainingError raised inside it is re-raised
+  with where the last good checkpoint is (which stays intact).
 - `build_optimizer` / `build_scheduler`: AdamW (no weight decay on norms, biases and
   embeddings), linear warmup then cosine / linear / constant.
 - `optimizer_step`: gradient accumulation over micro-batches (no gradient sync on all but
-  the last under DDP), clipping, a non-finite-loss guard, optimizer + scheduler step.
+  the last under DDP), clipping, a non-finite-loss guard, optimizer + scheduler step; metrics
+  averaged over micro-batches and processes, or weighted by each micro-batch's share (`weights`).
 - `batch_indices`: the data order as a pure function of (seed, step), so resuming at a
   step reproduces the exact batches without saving a sampler.
 - `MetricsLog`: one JSON line per logged step in metrics.jsonl plus a console line.
 - `Checkpointer`: `checkpoints/step-NNNNNN/` written to a temp dir then renamed (atomic);
-  it holds model, optimizer, scheduler, RNG states and the data position; `resume` loads
+  it holds model, optimizer, scheduler, RNG states and the data position; `resume_run` loads
   the newest complete one.
 """
 from __future__ import annotations
@@ -23,15 +30,16 @@ import os
 import random
 import shutil
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
 import numpy as np
 import torch
 
+from posttrain.errors import TrainingError  # noqa: F401  (raised here; importable from here as before)
+from posttrain.runtime import has_accelerator_device, set_threads, tune_malloc
 
-class TrainingError(RuntimeError):
-    """A run cannot go on (non-finite loss, ...); the last good checkpoint is intact."""
 
 
 # ----------------------------------------------------------------------------- setup
@@ -48,27 +56,38 @@ def setup(seed: int, threads: int = 0, mixed_precision: str | None = None):
     """
     from accelerate import Accelerator
 
-    from posttrain.rollout.engine import tune_malloc
-
-    tune_malloc()  # measured faster forwards on CPU (see its docstring); process-wide, once
-    if threads > 0:
-        torch.set_num_threads(threads)
+    tune_malloc()  # faster forwards on CPU (see its docstring); process-wide, once
+    set_threads(threads)
     # Without a GPU, ask for the CPU explicitly: then `accelerate launch --multi_gpu --num_processes N` or
     # `torchrun --nproc_per_node N` (which set LOCAL_RANK / WORLD_SIZE) give N CPU processes over gloo
     # (accelerate's MULTI_CPU) instead of N unconnected single-process runs.
-    accelerator = Accelerator(mixed_precision=mixed_precision, cpu=not _has_accelerator_device())
+    accelerator = Accelerator(mixed_precision=mixed_precision, cpu=not has_accelerator_device())
     seed_everything(seed)
     return accelerator
 
 
-def _has_accelerator_device() -> bool:
-    if torch.cuda.is_available():
-        return True
-    xpu = getattr(torch, "xpu", None)
-    if xpu is not None and xpu.is_available():
-        return True
-    mps = getattr(torch.backends, "mps", None)
-    return bool(mps is not None and mps.is_available())
+def main_printer(accelerator) -> Callable[..., None]:
+    """`print` on the main process, a no-op on the others (what a trainer's `say` is)."""
+    return print if accelerator.is_main_process else _silent
+
+
+def _silent(*args, **kwargs) -> None:
+    return None
+
+
+def start_run(res, seed: int, resume: bool):
+    """Start a stage's run: `setup` (seeds, threads, the Accelerator), then on the main process its run
+    directory (`prepare_run_dir`: an earlier run is kept as <dir>.prev unless resuming) and the resolved
+    config.yaml, every process waiting for that. Returns (accelerator, say)."""
+    from posttrain.config import save_resolved
+
+    accelerator = setup(seed, res.run.threads)
+    say = main_printer(accelerator)
+    if accelerator.is_main_process:
+        prepare_run_dir(res.stage_dir(), resume, say)
+        save_resolved(res, res.stage_dir() / "config.yaml")
+    accelerator.wait_for_everyone()
+    return accelerator, say
 
 
 def global_sum(accelerator, value: float) -> float:
@@ -126,17 +145,24 @@ def build_scheduler(optimizer, warmup_steps: int, total_steps: int, schedule: st
 
 def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list[Any],
                    loss_fn: Callable[[Any], tuple[torch.Tensor, dict[str, float]]],
-                   max_grad_norm: float, step: int) -> dict[str, float]:
+                   max_grad_norm: float, step: int, weights: list[float] | None = None) -> dict[str, float]:
     """One optimizer step over `micro_batches` (gradient accumulation).
 
     `loss_fn(micro_batch)` returns (loss, metrics) where the loss is already scaled to its
     share of the whole batch (e.g. summed token losses / tokens in the batch), so the
     accumulated gradient is that of the batch loss. Metrics are summed over micro-batches
     when their name ends in `_sum`, maxed when it ends in `_max`, else averaged (over processes too).
+
+    `weights` (one per micro-batch): its share of the GLOBAL batch, all processes' shares summing to 1
+    (e.g. its loss tokens / the batch's). The averaged metrics are then the weighted means over the
+    micro-batches of every process, so a token-mean metric is the whole batch's token mean. A micro-batch of
+    weight 0 (a padding copy that keeps the processes' all-reduces in step) adds nothing to any metric.
     """
     model.train()
     totals: dict[str, float] = {}
     loss_total = 0.0
+    if weights is not None and len(weights) != len(micro_batches):
+        raise ValueError(f"optimizer_step: {len(weights)} weights for {len(micro_batches)} micro-batches")
     for i, mb in enumerate(micro_batches):
         last = i == len(micro_batches) - 1
         ctx = accelerator.no_sync(model) if (not last and accelerator.num_processes > 1) else _null()
@@ -153,11 +179,13 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
                                     "The last good checkpoint is intact: lower the learning rate and resume.")
             accelerator.backward(loss)
         loss_total += loss.item()
+        w = 1.0 if weights is None else float(weights[i])
         for k, v in metrics.items():
             if k.endswith("_max"):
-                totals[k] = max(totals.get(k, -math.inf), float(v)) if v == v else totals.get(k, -math.inf)
+                v = float(v) if (v == v and w != 0.0) else -math.inf
+                totals[k] = max(totals.get(k, -math.inf), v)
             else:
-                totals[k] = totals.get(k, 0.0) + float(v)
+                totals[k] = totals.get(k, 0.0) + (float(v) * w if w != 0.0 else 0.0)
     grad_norm = float("nan")
     if max_grad_norm > 0:
         grad_norm = float(accelerator.clip_grad_norm_(model.parameters(), max_grad_norm))
@@ -167,21 +195,46 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
     optimizer.step()
     scheduler.step()
     optimizer.zero_grad(set_to_none=True)
-    n = len(micro_batches)
+    n = len(micro_batches) if weights is None else 1  # weighted: the sums are already the means
     out = {k: (v if k.endswith(("_sum", "_max")) else v / n) for k, v in totals.items()}
     out["loss"] = loss_total
     if accelerator.num_processes > 1:
         # The logged numbers describe the global batch: losses and means averaged over processes (each
-        # process's loss is its share scaled up, see loss_fn), `_sum` metrics summed, `_max` maxed.
+        # process's loss is its share scaled up, see loss_fn), weighted means summed (their weights sum
+        # to 1 over all processes), `_sum` metrics summed, `_max` maxed.
         keys = sorted(out)
         t = torch.tensor([out[k] for k in keys], dtype=torch.float64, device=accelerator.device)
         mean = accelerator.reduce(t.clone(), reduction="mean")
         total = accelerator.reduce(t.clone(), reduction="sum")
         top = accelerator.gather(t.unsqueeze(0)).max(0).values  # (W, k) -> (k,)
-        out = {k: float(total[i] if k.endswith("_sum") else top[i] if k.endswith("_max") else mean[i])
-               for i, k in enumerate(keys)}
+        summed = ("_sum",) if weights is None else ("_sum", "")
+        out = {k: float(top[i] if k.endswith("_max") else mean[i] if k == "loss"
+                        else total[i] if k.endswith(summed) else mean[i]) for i, k in enumerate(keys)}
     out.update(grad_norm=grad_norm, lr=scheduler.get_last_lr()[0])
     return out
+
+
+def weights_finite(*models) -> bool:
+    """Every parameter of every model is finite (checked before a checkpoint or an evaluation)."""
+    return all(bool(torch.isfinite(p).all()) for m in models for p in m.parameters())
+
+
+def check_weights(step: int, *models, unit: str = "step") -> None:
+    """A TrainingError when a weight is not finite after `step`: the run stops without saving them."""
+    if not weights_finite(*models):
+        raise TrainingError(f"non-finite weights after {unit} {step}; stopping without saving them")
+
+
+@contextmanager
+def naming_checkpoint(ckpt: "Checkpointer", context: str = ""):
+    """Re-raise a TrainingError from inside with where the last good checkpoint is (it stays intact), so the
+    user knows what `resume=true` continues from; `context` (e.g. "PPO iteration 3") goes first."""
+    try:
+        yield
+    except TrainingError as e:
+        last = ckpt.latest()
+        where = f"last good checkpoint: {last}" if last else "no checkpoint was written yet"
+        raise TrainingError(f"{e} ({context + '; ' if context else ''}{where})") from None
 
 
 class _null:
@@ -342,6 +395,24 @@ class Checkpointer:
             scheduler.load_state_dict(state["scheduler"])
         _set_rng_state(state["rng"])
         return {"step": state["step"], "data": state["data"], "extra": state["extra"]}
+
+
+def resume_run(ckpt: Checkpointer, metrics: "MetricsLog", model, optimizer=None, scheduler=None, *, resume: bool,
+               say: Callable[[str], None] = print, tag: str = "", unit: str = "step") -> dict[str, Any]:
+    """With resume=true: restore the newest checkpoint into model / optimizer / scheduler (and the RNG states) in
+    place and drop the metrics rows logged after it. Returns {"step", "data", "extra"}: step 0 and nothing
+    else when starting fresh or when there is no checkpoint yet (said so)."""
+    fresh: dict[str, Any] = {"step": 0, "data": {}, "extra": {}}
+    if not resume:
+        return fresh
+    last = ckpt.latest()
+    if last is None:
+        say(f"[{tag}] resume=true but no checkpoint in {ckpt.dir}; starting from {unit} 0")
+        return fresh
+    state = ckpt.load(last, model, optimizer, scheduler)
+    metrics.truncate_after(state["step"])
+    say(f"[{tag}] resumed from {last} at {unit} {state['step']}")
+    return state
 
 
 def prepare_run_dir(run_dir: Path, resume: bool, log: Callable[[str], None] = print) -> None:

@@ -24,12 +24,17 @@ Presets (parameter counts with the default 1024-token vocabulary, tied embedding
 """
 from __future__ import annotations
 
+import inspect
 import os
 import warnings
 from pathlib import Path
 from typing import Iterable
 
 import torch
+
+from posttrain.errors import ModelError
+from posttrain import models  # introduced on purpose
+from posttrain.runtime import DTYPES, dtype_problem
 
 PAD_TOKEN = "<|pad|>"
 EOS_TOKEN = "<|eos|>"
@@ -45,8 +50,6 @@ PRESETS: dict[str, dict] = {
 }
 
 
-class ModelError(ValueError):
-    """A model or tokenizer the user pointed at cannot be used (missing path, not a model dir)."""
 
 
 def train_tokenizer(texts: Iterable[str], vocab_size: int = 1024, model_max_length: int = 512,
@@ -138,22 +141,6 @@ def load_tokenizer(path: str | os.PathLike, model_cfg=None):
 
         chat.configure(tok, model_cfg.chat_template, model_cfg.system_prompt, str(p))
     return tok
-
-
-DTYPES: dict[str, torch.dtype] = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
-
-
-def dtype_problem(name: str) -> str | None:
-    """Why weights in dtype `name` (a `model.dtype` value) cannot be used on this machine, or None."""
-    if name == "float32":
-        return None
-    from posttrain.loop import _has_accelerator_device
-
-    if _has_accelerator_device():
-        return None
-    return (f"model.dtype={name}: no GPU found; on CPU posttrain trains float32 weights ({name} weights would "
-            "train without an fp32 master copy, and many CPUs have no bf16 matmul units); use model.dtype=float32, "
-            "and for bf16 compute over fp32 weights launch with `accelerate launch --mixed_precision bf16`")
 
 
 def resolve_dtype(dtype: str | torch.dtype | None, device: str | torch.device = "cpu") -> torch.dtype:
@@ -304,3 +291,73 @@ def bootstrap(preset: str, corpus: Iterable[str], out_dir: str | os.PathLike, *,
     model = build_model(preset, tokenizer, seed=seed)
     save_model(model, tokenizer, out_dir)
     return model, tokenizer
+
+
+# ----------------------------------------------------------------------------- model plumbing
+def unwrap_model(model):
+    """The HF model inside DDP / accelerate / torch.compile wrappers (peft models are returned as they are)."""
+    seen = set()
+    while id(model) not in seen:
+        seen.add(id(model))
+        if hasattr(model, "_orig_mod"):
+            model = model._orig_mod
+        elif isinstance(model, (torch.nn.parallel.DistributedDataParallel, torch.nn.DataParallel)) or (
+            isinstance(getattr(model, "module", None), torch.nn.Module) and not hasattr(model, "config")
+        ):
+            model = model.module
+    return model
+
+
+def accepts(model, name: str) -> bool:
+    """Whether the real forward inside `model`'s wrappers (DDP, peft, torch.compile) takes the argument `name`."""
+    m = unwrap_model(model)
+    if hasattr(m, "get_base_model"):  # peft
+        m = m.get_base_model()
+    try:
+        return name in inspect.signature(m.forward).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+def position_ids_from_mask(attention_mask: torch.Tensor) -> torch.Tensor:
+    """(B, T) 0/1 mask -> (B, T) positions counting real tokens only (pads get 0)."""
+    return (attention_mask.long().cumsum(-1) - 1).clamp_(min=0)
+
+
+def model_device(model) -> torch.device:
+    for p in model.parameters():
+        return p.device
+    return torch.device("cpu")
+
+
+def weights_signature(model) -> tuple:
+    """Changes whenever a parameter is replaced or updated in place (optimizer steps bump `_version`), or
+    LoRA adapters are switched on / off, merged or swapped: how the rollout engine and the vLLM backend see
+    that a model changed since they last read its weights."""
+    sig = tuple((p.data_ptr(), p._version) for p in model.parameters())
+    if hasattr(model, "peft_config"):
+        sig += tuple((m.disable_adapters, m.merged, tuple(m.active_adapters)) for m in model.modules()
+                     if hasattr(m, "lora_A"))
+    return sig
+
+
+def load_reference(res, policy, model_dir, device):
+    """The frozen reference of DPO / PPO / GRPO: with LoRA (`res.use_lora`) the policy with its adapters
+    switched off (`reference_view`, no copy of the weights), else a second copy of `model_dir` in eval mode."""
+    if res.use_lora:
+        return reference_view(policy)
+    return load_model(model_dir, res.model.dtype, device=device).eval().requires_grad_(False)
+
+
+def load_reward_init(sft_dir, pad_id: int, seed: int, device, dtype: str | torch.dtype = torch.float32):
+    """The SFT transformer under a new one-output head (`AutoModelForSequenceClassification`, seeded init):
+    the reward model's start, and PPO's value model under value_init=policy; weights in `dtype` (a
+    `model.dtype` name or a torch dtype)."""
+    from transformers import AutoModelForSequenceClassification
+
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = AutoModelForSequenceClassification.from_pretrained(str(sft_dir), num_labels=1,
+                                                                   dtype=resolve_dtype(dtype), local_files_only=True)
+    model.config.pad_token_id = pad_id
+    return model.to(device)

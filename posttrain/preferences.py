@@ -120,7 +120,7 @@ def gold_labeler(task_name: str) -> Callable[[list[dict], list[list[str]]], list
     from posttrain import tasks
 
     task = tasks.get_task(task_name)
-    if not hasattr(task, "gold_key"):
+    if not tasks.has_gold_preference(task):
         raise ValueError(f"task {task_name!r} has no gold preference (gold_key); give a preference file "
                          "(prefs.train_file) or use a reward-model labeler")
 

@@ -79,18 +79,19 @@ def reward_forward(model, input_ids: torch.Tensor, attention_mask: torch.Tensor)
     real checkpoints) the trainers leave the eos off (`append_eos=False`) so they still agree and a
     model saved here scores the same under a plain `AutoModelForSequenceClassification` call.
     Positions: position_ids = cumsum(attention_mask) - 1, as `posttrain.logprobs` uses.
-    A plain fp32 Llama-family model (not wrapped) runs `posttrain.lean_train.lean_hidden` instead of its own
+    A plain fp32 Llama-family model (not wrapped) runs `posttrain.lean.lean_hidden` instead of its own
     forward: the same rewards within fp32 rounding (tested), fewer ops.
     """
-    from posttrain.logprobs import position_ids_from_mask
+    from posttrain.lean.support import lean_support
+    from posttrain.models import position_ids_from_mask
 
     if not bool(attention_mask[:, -1].all()):
         raise ValueError("reward_forward needs LEFT-padded rows (every row's last column a real token)")
-    from posttrain import lean_train
+    from posttrain.lean import train as lean
 
-    if lean_train.lean_train_support(model, input_ids.shape[1], head="score")[0]:
-        # Same numbers within fp32 rounding, fewer ops (posttrain/lean_train.py): the score of the last column.
-        hidden = lean_train.lean_hidden(model, input_ids, attention_mask)[:, -1]  # (B, d)
+    if lean_support(model, input_ids.shape[1], mode="train", head="score")[0]:
+        # Same numbers within fp32 rounding, fewer ops (posttrain/lean/train.py): the score of the last column.
+        hidden = lean.lean_hidden(model, input_ids, attention_mask)[:, -1]  # (B, d)
         return torch.nn.functional.linear(hidden, model.score.weight, model.score.bias)[:, 0].float()  # (B,)
     out = model(input_ids=input_ids, attention_mask=attention_mask,
                 position_ids=position_ids_from_mask(attention_mask))
@@ -160,7 +161,7 @@ class RewardModelScorer:
     @torch.no_grad()
     def score(self, prompts, completions, references=None) -> ScoreResult:
         _check_lengths(prompts, completions, references)
-        from posttrain.logprobs import model_device
+        from posttrain.models import model_device
 
         seqs = rm_token_ids(self.tokenizer, prompts, completions)
         # sort by length so each micro-batch pads little; scatter back in order
@@ -268,7 +269,7 @@ class GoldScorer:
         from posttrain import tasks
 
         self.task = tasks.get_task(task_name)
-        if not (hasattr(self.task, "gold_breakdown") or hasattr(self.task, "gold_quality")):
+        if not tasks.has_gold(self.task):
             raise ValueError(f"task {task_name!r} has no gold metric")
         self.length_weight = length_weight
         self.name = name
@@ -277,7 +278,7 @@ class GoldScorer:
         _check_lengths(prompts, completions, references)
         if references is None:
             raise ValueError("GoldScorer.score needs references: the task's meta of each prompt")
-        if not hasattr(self.task, "gold_breakdown"):
+        if self.task.gold_breakdown is None:
             q = [float(self.task.gold_quality(m, c)) for m, c in zip(references, completions)]
             return ScoreResult(list(q), {"quality": q})
         rows = [self.task.gold_breakdown(m, c) for m, c in zip(references, completions)]

@@ -12,8 +12,8 @@ from __future__ import annotations
 from typing import Any
 
 from verifiers.base import AuditProblem, Verdict, Verifier
-from verifiers.combine import WeightedVerifier, combine
-from verifiers.registry import FunctionVerifier, get_verifier, list_verifiers
+from verifiers.combine import WeightedVerifier
+from verifiers.registry import FunctionVerifier, combine, get_verifier, list_verifiers
 from verifiers.runner import VerifierError, VerifierPool, default_workers, score_batch, score_one
 
 _LAZY = {

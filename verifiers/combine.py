@@ -1,8 +1,13 @@
 """Weighted composition: several verifiers scored as one (e.g. correctness 0.9 + format 0.1).
 
-    from verifiers import combine, get_verifier
-    reward = combine((get_verifier("math"), 0.9), (get_verifier("format", tags="answer"), 0.1))
+    from verifiers import WeightedVerifier, combine, get_verifier
+    reward = WeightedVerifier([(get_verifier("math"), 0.9), (get_verifier("format", tags="answer"), 0.1)])
+    reward = combine(("math", 0.9), (get_verifier("format", tags="answer"), 0.1))   # names resolved
     reward = get_verifier("0.9*math + 0.1*format")          # the same, from a config string
+
+`WeightedVerifier` takes verifier objects only; `combine` (in `verifiers.registry`, which resolves
+names) and `get_verifier`'s composition specs build one from names. So this module needs nothing but
+`verifiers.base`, and the registry builds on it, never the other way round.
 
 score = sum(w_i * s_i) / sum(w_i) (exactly 1.0 when every part scores 1.0, so `passed` means
 every part passed); reason = "name: reason; name: reason" in the order given; details =
@@ -25,7 +30,7 @@ class WeightedVerifier(Verifier):
 
     description = "weighted mean of several verifiers"
 
-    def __init__(self, parts: Iterable[tuple[Verifier | str, float]] | Mapping[Any, float], *, name: str | None = None):
+    def __init__(self, parts: Iterable[tuple[Verifier, float]] | Mapping[Verifier, float], *, name: str | None = None):
         items = list(parts.items()) if isinstance(parts, Mapping) else list(parts)
         if not items:
             raise ValueError("a weighted composition needs at least one (verifier, weight) part")
@@ -36,9 +41,8 @@ class WeightedVerifier(Verifier):
                 raise ValueError(f"composition parts are (verifier, weight) pairs, got {entry!r}")
             verifier, weight = entry
             if isinstance(verifier, str):
-                from verifiers.registry import get_verifier
-
-                verifier = get_verifier(verifier)
+                raise ValueError(f"composition part {verifier!r} is a name, not a Verifier: resolve it with "
+                                 f"get_verifier({verifier!r}), or build the composition with verifiers.combine()")
             if not isinstance(verifier, Verifier):
                 raise ValueError(f"composition part {verifier!r} is not a Verifier")
             if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not math.isfinite(weight) or weight < 0:
@@ -84,8 +88,3 @@ class WeightedVerifier(Verifier):
             except NotImplementedError:
                 continue
         raise NotImplementedError(f"no part of {self.name!r} ships audit problems; pass --problems FILE.jsonl")
-
-
-def combine(*parts: Verifier | str | tuple[Verifier | str, float], name: str | None = None) -> WeightedVerifier:
-    """`combine((math, 0.9), (fmt, 0.1))`; a bare verifier or spec string gets weight 1."""
-    return WeightedVerifier([p if isinstance(p, tuple) else (p, 1.0) for p in parts], name=name)

@@ -35,6 +35,7 @@ import sys
 from typing import Any, Callable
 
 from verifiers.base import Verdict, Verifier
+from verifiers.combine import WeightedVerifier
 
 ENTRY_POINT_GROUP = "posttrain.verifiers"
 
@@ -221,8 +222,6 @@ def get_verifier(spec: str | Verifier, **options: Any) -> Verifier:
         if options:
             raise ValueError(f"options {sorted(options)} cannot be passed to a composition spec {spec!r}; "
                              "build it with verifiers.combine() instead")
-        from verifiers.combine import WeightedVerifier
-
         parts = []
         for term in spec.split("+"):
             m = _TERM_RE.match(term)
@@ -273,3 +272,10 @@ def list_verifiers() -> list[tuple[str, str, str]]:
             desc = f"unavailable: {type(e).__name__}: {e}"
         rows.append((ep.name, desc, origin))
     return rows
+
+
+def combine(*parts: Verifier | str | tuple[Verifier | str, float], name: str | None = None) -> WeightedVerifier:
+    """`combine((math, 0.9), (fmt, 0.1))`: a `WeightedVerifier` of verifiers or registry names (resolved with
+    `get_verifier`); a bare verifier or name gets weight 1."""
+    pairs = [p if isinstance(p, tuple) else (p, 1.0) for p in parts]
+    return WeightedVerifier([(get_verifier(v) if isinstance(v, str) else v, w) for v, w in pairs], name=name)

@@ -35,7 +35,7 @@ Contract
 - Memory. Rows are split into micro-batches with rows * (longest prompt + max_new_tokens) <=
   max_batch_tokens (default 16384 tokens); the KV cache of a micro-batch is that many token slots
   x layers x 2 x kv_heads x head_dim x dtype bytes (tiny: 4 KiB per slot; small: 18 KiB).
-- Speed path. `select_backend` picks the lean Llama-family forward (`backends.LeanLlama`: fused and
+- Speed path. `select_backend` picks the lean Llama-family forward (`posttrain.lean.decode.LeanLlama`: fused and
   pre-transposed weights with norms and the softmax scale folded in, RoPE as one complex multiply,
   preallocated KV cache written in place, explicit GEMV attention; see its docstring) when the model
   supports it (llama / mistral / qwen2 types, fp32, plain nn.Linear), else the model's own forward
@@ -58,9 +58,11 @@ Contract
   records and pushes the policy's weights into vLLM whenever they changed since its last call (so after
   every policy update); its log-probs, determinism and limits are in that module's docstring. Untested here.
 """
-from .backends import LeanLlama, lean_support
+from ..lean.decode import LeanLlama
+from ..lean.support import lean_support
+from ..runtime import tune_malloc
 from .engine import (BACKENDS, DEFAULT_MAX_BATCH_TOKENS, configure, context_length, default_backend, generate,
-                     select_backend, tune_malloc)
+                     select_backend)
 from .records import Rollout, RolloutBatch, collate_rollouts, load_rollouts, save_rollouts
 from .sampling import SamplingParams, row_uniforms
 

@@ -1,27 +1,26 @@
 """`generate`: the batched sampling loop (see `posttrain.rollout` for the contract)."""
 from __future__ import annotations
 
-import ctypes
 import dataclasses
 import logging
-import os
-import sys
 import weakref
 from typing import Sequence
 
 import torch
 
 from ..chat import encode_prompts
-from ..logprobs import unwrap_model
-from .backends import HFForward, LeanLlama, lean_support
-from .records import Rollout
+from ..models import unwrap_model, weights_signature
+from ..runtime import tune_malloc
+from ..lean.decode import LeanLlama
+from ..lean.support import lean_support
+from .backends import HFForward
+from .records import Rollout, finish_rollouts
 from .sampling import Sampler, SamplingParams, find_stop, row_uniforms, stop_candidates
 
 log = logging.getLogger(__name__)
 
 DEFAULT_MAX_BATCH_TOKENS = 16384
 BACKENDS = ("auto", "lean", "hf", "vllm")
-_malloc_tuned = False
 _defaults: dict = {"backend": "auto", "vllm": {}}
 
 
@@ -45,27 +44,6 @@ def default_backend() -> str:
     return _defaults["backend"]
 
 
-def tune_malloc() -> bool:
-    """Raise glibc's mmap threshold (32 MiB) and trim threshold (512 MiB), once per process, so the
-    decode loop's per-step activations (up to a few MiB at large batch) are recycled from the heap
-    instead of being mmapped, page-faulted and unmapped every step, and freed memory is not handed
-    back to the OS between steps. Measured on the tiny preset (1 thread): 3-10% at batch 16, within
-    noise at batch 64. Process-wide (it also benefits anything else running); off glibc, or with
-    POSTTRAIN_NO_MALLOPT=1 in the environment, it does nothing."""
-    global _malloc_tuned
-    if _malloc_tuned:
-        return True
-    _malloc_tuned = True
-    if not sys.platform.startswith("linux") or os.environ.get("POSTTRAIN_NO_MALLOPT"):
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-        return bool(libc.mallopt(M_MMAP_THRESHOLD, 32 << 20)) and bool(libc.mallopt(M_TRIM_THRESHOLD, 512 << 20))
-    except (OSError, AttributeError):
-        return False
-
-
 def context_length(model) -> int | None:
     cfg = getattr(unwrap_model(model), "config", None)
     n = getattr(cfg, "max_position_embeddings", None)
@@ -73,16 +51,6 @@ def context_length(model) -> int | None:
 
 
 _lean_cache: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-
-
-def _weights_signature(model) -> tuple:
-    """Changes whenever a parameter is replaced or updated in place (optimizer steps bump `_version`), or
-    LoRA adapters are switched on / off, merged or swapped."""
-    sig = tuple((p.data_ptr(), p._version) for p in model.parameters())
-    if hasattr(model, "peft_config"):
-        sig += tuple((m.disable_adapters, m.merged, tuple(m.active_adapters)) for m in model.modules()
-                     if hasattr(m, "lora_A"))
-    return sig
 
 
 def select_backend(model, max_len: int = 0, backend: str = "auto"):
@@ -95,9 +63,9 @@ def select_backend(model, max_len: int = 0, backend: str = "auto"):
     if backend == "hf":
         return HFForward(model), "HF forward (requested)"
     inner = unwrap_model(model)
-    ok, why = lean_support(inner, max_len)
+    ok, why = lean_support(inner, max_len, mode="decode")
     if ok:
-        sig = _weights_signature(inner)
+        sig = weights_signature(inner)
         hit = _lean_cache.get(inner)
         if hit is None or hit[0] != sig:
             layout = tuple((p.shape, p.dtype, p.device) for p in inner.parameters())
@@ -239,7 +207,7 @@ def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling:
         fwd.release()
         if isinstance(fwd, HFForward) and model_was_training:
             model.train()
-    return _finish(results, ids, texts, params, tokenizer)
+    return finish_rollouts(results, ids, texts, params, tokenizer)
 
 
 def plan_micro_batches(lengths: list[int], n: int, max_new: int, budget: int) -> list[list[tuple[int, int]]]:
@@ -382,32 +350,3 @@ def _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_ta
     for r, key in enumerate(rows):
         k = length[r]
         results[key] = (tok_l[r][:k], lp_l[r][:k], pol_l[r][:k], reason[r])
-
-
-def _finish(results, ids, texts, params: SamplingParams, tokenizer) -> list[Rollout]:
-    keys = sorted(results)
-    decode = (lambda seqs: tokenizer.batch_decode(seqs, skip_special_tokens=True)) if tokenizer is not None \
-        else (lambda seqs: [""] * len(seqs))
-    full = decode([results[k][0] for k in keys])
-    out = []
-    for key, text in zip(keys, full):
-        toks, lp, pol, why = results[key]
-        if params.stop:
-            hit = find_stop(text, params.stop)
-            if hit is not None:
-                # Shortest token prefix whose text already contains a stop string.
-                lo, hi = 1, len(toks)
-                while lo < hi:
-                    mid = (lo + hi) // 2
-                    if find_stop(tokenizer.decode(toks[:mid], skip_special_tokens=True), params.stop) is not None:
-                        hi = mid
-                    else:
-                        lo = mid + 1
-                toks, lp, pol, why = toks[:lo], lp[:lo], pol[:lo], "stop"
-                text = tokenizer.decode(toks, skip_special_tokens=True)
-                at, s = find_stop(text, params.stop)
-                text = text[:at + len(s)] if params.include_stop else text[:at]
-        i, j = key
-        out.append(Rollout(prompt_ids=list(ids[i]), completion_ids=toks, logprobs=lp, policy_logprobs=pol,
-                           finish_reason=why, text=text, prompt_index=i, sample_index=j, prompt=texts[i]))
-    return out

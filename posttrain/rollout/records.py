@@ -37,6 +37,8 @@ from typing import Any, Sequence
 
 import torch
 
+from .sampling import find_stop
+
 FINISH_REASONS = ("eos", "stop", "length")
 
 
@@ -212,3 +214,35 @@ def load_rollouts(path: str | os.PathLike) -> list[Rollout]:
     else:
         ds = Dataset.from_parquet(str(p), keep_in_memory=True)
     return [Rollout.from_dict(row) for row in ds]
+
+
+def finish_rollouts(results, ids, texts, params, tokenizer) -> list[Rollout]:
+    """Rollout records from a sampler's raw results {(prompt index, sample index): (token ids, log-probs,
+    policy log-probs, finish reason)}, ordered by key: texts decoded, cut at the first stop string of
+    `params` (a `SamplingParams`), finish reason "stop" then. Every backend (built-in, vLLM) ends here."""
+    keys = sorted(results)
+    decode = (lambda seqs: tokenizer.batch_decode(seqs, skip_special_tokens=True)) if tokenizer is not None \
+        else (lambda seqs: [""] * len(seqs))
+    full = decode([results[k][0] for k in keys])
+    out = []
+    for key, text in zip(keys, full):
+        toks, lp, pol, why = results[key]
+        if params.stop:
+            hit = find_stop(text, params.stop)
+            if hit is not None:
+                # Shortest token prefix whose text already contains a stop string.
+                lo, hi = 1, len(toks)
+                while lo < hi:
+                    mid = (lo + hi) // 2
+                    if find_stop(tokenizer.decode(toks[:mid], skip_special_tokens=True), params.stop) is not None:
+                        hi = mid
+                    else:
+                        lo = mid + 1
+                toks, lp, pol, why = toks[:lo], lp[:lo], pol[:lo], "stop"
+                text = tokenizer.decode(toks, skip_special_tokens=True)
+                at, s = find_stop(text, params.stop)
+                text = text[:at + len(s)] if params.include_stop else text[:at]
+        i, j = key
+        out.append(Rollout(prompt_ids=list(ids[i]), completion_ids=toks, logprobs=lp, policy_logprobs=pol,
+                           finish_reason=why, text=text, prompt_index=i, sample_index=j, prompt=texts[i]))
+    return out

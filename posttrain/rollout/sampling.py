@@ -62,7 +62,7 @@ class SamplingParams:
         return self.greedy or self.temperature == 0
 
 
-def _mix32(x: torch.Tensor) -> torch.Tensor:
+def mix32(x: torch.Tensor) -> torch.Tensor:
     """A 32-bit integer finalizer (xorshift-multiply, after Wellons' `lowbias32`) on int64 tensors.
 
     Inputs and outputs are in [0, 2**32). Multipliers are < 2**31 so products stay below 2**63
@@ -87,11 +87,11 @@ def row_uniforms(seed: int, keys: torch.Tensor, samples: torch.Tensor, steps: in
     keys = keys.to(torch.int64)
     h = torch.full_like(keys, 0)
     for word in (seed & _M32, (seed >> 32) & _M32):
-        h = _mix32(h ^ word)
+        h = mix32(h ^ word)
     for part in (keys & _M32, (keys >> 32) & _M32, samples.to(torch.int64) & _M32):
-        h = _mix32((h + 0x9E3779B9) & _M32 ^ part)
+        h = mix32((h + 0x9E3779B9) & _M32 ^ part)
     t = torch.arange(steps, device=dev, dtype=torch.int64)
-    x = _mix32((h[:, None] + 0x9E3779B9) & _M32 ^ t[None, :])  # (R, steps)
+    x = mix32((h[:, None] + 0x9E3779B9) & _M32 ^ t[None, :])  # (R, steps)
     return (x >> 9).to(torch.float32) * (1.0 / (1 << 23))
 
 

@@ -78,9 +78,9 @@ from typing import Any, Sequence
 
 import torch
 
-from ..config import ConfigError
-from ..logprobs import unwrap_model
-from .records import Rollout
+from ..errors import ConfigError
+from ..models import unwrap_model, weights_signature
+from .records import Rollout, finish_rollouts
 from .sampling import SamplingParams
 
 _MISSING = ("rollout.backend=vllm: vLLM is not installed; pip install vllm (it needs an NVIDIA GPU with CUDA), "
@@ -119,10 +119,10 @@ def engine_for(model, tokenizer, **options) -> "VLLMEngine":
 def request_seed(seed: int, key: int) -> int:
     """vLLM's per-request seed of prompt `key`: a 31-bit mix of (seed, key) (one stream per prompt, up to hash
     collisions), so a prompt's seed does not depend on the other prompts of the call."""
-    from .sampling import _mix32
+    from .sampling import mix32
 
-    x = _mix32(torch.tensor([seed & 0xFFFFFFFF], dtype=torch.int64)) ^ (key & 0xFFFFFFFF)
-    return int(_mix32(x).item()) & 0x7FFFFFFF
+    x = mix32(torch.tensor([seed & 0xFFFFFFFF], dtype=torch.int64)) ^ (key & 0xFFFFFFFF)
+    return int(mix32(x).item()) & 0x7FFFFFFF
 
 
 def export_weights(model) -> list[tuple[str, torch.Tensor]]:
@@ -201,21 +201,17 @@ class VLLMEngine:
     # ------------------------------------------------------------------ weights
     def sync_weights(self, model) -> None:
         """Push `model`'s current weights into the engine (all of them, LoRA merged) and drop its prefix cache."""
-        from .engine import _weights_signature
-
         inner = unwrap_model(model)
         with torch.no_grad():
             weights = export_weights(inner)
             self.llm.collective_rpc(_load_into_worker, args=(weights,))
         self.llm.reset_prefix_cache()
-        self.synced = _weights_signature(inner)
+        self.synced = weights_signature(inner)
         self.pushes += 1
 
     def sync_if_changed(self, model) -> bool:
         """Push when the weights changed since the last push (always on the first call); True if it pushed."""
-        from .engine import _weights_signature
-
-        if self.synced is not None and _weights_signature(unwrap_model(model)) == self.synced:
+        if self.synced is not None and weights_signature(unwrap_model(model)) == self.synced:
             return False
         self.sync_weights(model)
         return True
@@ -234,8 +230,6 @@ class VLLMEngine:
                  keys: Sequence[int], limits: Sequence[int], tokenizer=None) -> list[Rollout]:
         """Rollouts of validated token-id prompts (`engine.generate` validated them and clipped `limits` to the
         context), ordered by (prompt index, sample index). Pushes the weights first if they changed."""
-        from .engine import _finish
-
         self.sync_if_changed(model)
         requests = [{"prompt_token_ids": list(p)} for p in ids]
         sps = [self.sampling_params(params, k, lim) for k, lim in zip(keys, limits)]
@@ -252,7 +246,7 @@ class VLLMEngine:
                 raw = completion_logprobs(c, toks, i, j)
                 results[(i, j)] = (toks, [0.0] * len(toks) if params.is_greedy else raw, raw,
                                    finish_reason(c, i, j))
-        return _finish(results, ids, texts, params, tokenizer)
+        return finish_rollouts(results, ids, texts, params, tokenizer)
 
 
 def completion_logprobs(c, toks: list[int], i: int, j: int) -> list[float]:

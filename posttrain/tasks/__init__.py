@@ -1,9 +1,9 @@
 """Seeded task generators with gold scorers (pure Python, no torch).
 
-Every task module offers at least:
-    make_examples(n, seed, split) -> list[{"prompt", "completion" | "answer", "meta"}]
-    corpus(n, seed) -> list[str]                 # text for training the tokenizer
-    evaluate(metas, completions) -> dict[str, float]
+A task is a module that provides what `Task` states (`get_task` checks every name, so a task written
+against this protocol fails at once, naming what it lacks): a seeded generator of rows, a tokenizer
+corpus, a held-out evaluation, and the gold signals it has, each either a function or None, so the
+trainers ask `task.gold_quality is not None` (see `has_gold`), never `hasattr`.
 
 `TASKS` maps a recipe's `task.name` to its module; `get_task` imports it on first use.
 """
@@ -11,6 +11,53 @@ from __future__ import annotations
 
 import importlib
 from types import ModuleType
+from typing import Any, Callable, Literal, Mapping, Protocol, Sequence
+
+
+class Task(Protocol):
+    """What a task module provides. Optional capabilities are None when the task has no such signal."""
+
+    NAME: str  # the recipe's task.name
+    VERIFIER: str | None  # registry spec of the verifier of its answers (GRPO's verifier=auto); None: none
+    GOLD_METRICS: Mapping[str, str]  # logged name -> key of `evaluate`'s dict (DPO / PPO log gold/<name>)
+
+    def make_examples(self, n: int, seed: int, split: Literal["train", "eval"]) -> list[dict[str, Any]]:
+        """Rows {"prompt", "completion" and/or "answer", "meta"}; a pure function of (n, seed, split)."""
+
+    def corpus(self, n: int, seed: int) -> list[str]:
+        """Texts to train the task's tokenizer on."""
+
+    def evaluate(self, metas: Sequence[dict], completions: Sequence[str]) -> dict[str, float]:
+        """Held-out metrics of completions (the keys GOLD_METRICS names among them)."""
+
+    gold_quality: Callable[[dict, str], float] | None  # scalar gold score (GoldScorer, PPO reward=gold)
+    gold_breakdown: Callable[[dict, str], dict] | None  # its terms (GoldScorer's length-aware reward)
+    gold_key: Callable[[dict, str], Any] | None  # gold preference as a sort key (preference pairs, DPO labels)
+    gold_prefer: Callable[[dict, str, str], int] | None  # +1 / 0 / -1 (wins / ties / losses counts)
+    win_rate: Callable[[Sequence[dict], Sequence[str], Sequence[str]], float] | None  # ties count half
+
+
+TASK_MEMBERS = ("NAME", "VERIFIER", "GOLD_METRICS", "make_examples", "corpus", "evaluate", "gold_quality",
+                "gold_breakdown", "gold_key", "gold_prefer", "win_rate")
+
+
+def check_task(module: ModuleType) -> Task:
+    """`module` as a `Task`; a TypeError naming every member of the protocol it lacks."""
+    missing = [m for m in TASK_MEMBERS if not hasattr(module, m)]
+    if missing:
+        raise TypeError(f"task module {module.__name__} lacks {', '.join(missing)} of posttrain.tasks.Task "
+                        "(set an optional signal to None when the task has none)")
+    return module  # type: ignore[return-value]
+
+
+def has_gold(task: Task) -> bool:
+    """The task has a gold score of a completion (gold metrics, win-rates, PPO's reward=gold)."""
+    return task.gold_quality is not None or task.gold_breakdown is not None
+
+
+def has_gold_preference(task: Task) -> bool:
+    """The task ranks completions by a gold preference (preference pairs labelled by it, DPO's gold metrics)."""
+    return task.gold_key is not None
 
 TASKS: dict[str, str] = {
     "tiny-summarize": "posttrain.tasks.summarize",
@@ -20,15 +67,15 @@ TASKS: dict[str, str] = {
 }
 
 
-def get_task(name: str) -> ModuleType:
+def get_task(name: str) -> Task:
     """The task module registered under `name`; a clear error lists the known names."""
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; known tasks: {', '.join(sorted(TASKS))}")
-    return importlib.import_module(TASKS[name])
+    return check_task(importlib.import_module(TASKS[name]))
 
 
-def _task_or_config_error(name: str) -> ModuleType:
-    from posttrain.config import ConfigError
+def _task_or_config_error(name: str) -> Task:
+    from posttrain.errors import ConfigError
 
     try:
         return get_task(name)

@@ -37,6 +37,9 @@ from typing import Any, Callable, Literal, Sequence
 
 NAME = "tiny-code"
 VERIFIER = "code"
+GOLD_METRICS = {"accuracy": "accuracy", "length_chars": "length_chars"}
+# The verifier is the only signal: no gold score, preference or win-rate (posttrain.tasks.Task).
+gold_quality = gold_breakdown = gold_key = gold_prefer = win_rate = None
 """The verifier spec GRPO uses when the recipe sets none (`grpo.verifier: auto`)."""
 EVAL_FRACTION = 0.2
 

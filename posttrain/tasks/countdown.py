@@ -45,6 +45,9 @@ from verifiers.puzzles import countdown as _cd  # the checker
 
 NAME = "tiny-countdown"
 VERIFIER = "countdown"
+GOLD_METRICS = {"accuracy": "accuracy", "length_chars": "length_chars"}
+# The verifier is the only signal: no gold score, preference or win-rate (posttrain.tasks.Task).
+gold_quality = gold_breakdown = gold_key = gold_prefer = win_rate = None
 """The verifier spec GRPO uses when the recipe sets none (`grpo.verifier: auto`)."""
 MAX_TARGET = 100
 EVAL_FRACTION = 0.2

@@ -108,8 +108,11 @@ import re
 from collections import Counter
 from typing import Any, Literal, Sequence
 
-TASK_NAME = "tiny-math"
+TASK_NAME = NAME = "tiny-math"
 VERIFIER = "math"
+GOLD_METRICS = {"accuracy": "accuracy", "length_chars": "mean_length_chars"}
+gold_breakdown = None  # the gold score is correctness alone (gold_quality)
+gold_key = None  # no preference ranking beyond right / wrong (gold_prefer)
 PROMPT_TEMPLATE = "Question: {problem}\nAnswer:"
 
 EVAL_FRACTION_BUCKETS = 5  # a number tuple goes to eval when sha1 % 5 == 0 (~20%)

@@ -112,7 +112,9 @@ import re
 from fractions import Fraction
 from typing import Any, Literal, Sequence
 
-TASK_NAME = "tiny-summarize"
+TASK_NAME = NAME = "tiny-summarize"
+VERIFIER = None  # no verifiable answers: the gold signal is gold_quality / gold_key
+GOLD_METRICS = {"quality": "mean_quality", "in_band": "frac_in_band", "length": "mean_length"}
 PROMPT_TEMPLATE = "Document: {document}\nSummary:"
 
 STYLE_WEIGHTS = {"concise": 0.30, "verbose": 0.45, "terse": 0.25}

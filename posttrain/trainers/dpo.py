@@ -284,7 +284,7 @@ def train(res: Resolved, ensure) -> Path:
         preferences.check_pairs(train_rows, source, "error")
         preferences.check_pairs(eval_rows_pairs[: cfg.eval_pairs], eval_source, "error")
     task = tasks.get_task(res.task.name)
-    has_gold = hasattr(task, "gold_key")
+    has_gold = tasks.has_gold_preference(task)
     # gold evaluation needs each held-out prompt's task meta (a task.eval_file may not carry it)
     eval_prompts = [r for r in tasks.load_split(res.task, "eval") if r.get("meta")] if has_gold else []
     if cfg.online and cfg.online_labeler == "gold" and not has_gold:

@@ -290,9 +290,9 @@ def build_verifier(cfg: GRPOConfig, task, rows: list[dict[str, Any]]):
         if len(named) > 1:
             raise ConfigError(f"grpo.verifier=auto: the problems name several verifiers ({', '.join(named)}); "
                               "set grpo.verifier to one spec (e.g. logic dispatches on the reference's family)")
-        spec = named[0] if named else getattr(task, "VERIFIER", "")
+        spec = named[0] if named else (task.VERIFIER or "")
         if not spec:
-            raise ConfigError(f"grpo.verifier=auto but task {getattr(task, 'NAME', task.__name__)!r} names no verifier "
+            raise ConfigError(f"grpo.verifier=auto but task {task.NAME!r} names no verifier "
                               "(VERIFIER); set grpo.verifier, e.g. grpo.verifier=math")
     try:
         return get_verifier(spec, **cfg.verifier_options)

@@ -127,11 +127,13 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from posttrain import lean_train, loop
+from posttrain import loop
+from posttrain.lean import train as lean
+from posttrain.lean.support import lean_support
 from posttrain.advantages import AdaptiveKLController, FixedKLController, gae, rewards_with_kl
 from posttrain.config import ConfigError, Resolved, save_resolved
-from posttrain.logprobs import (batched_logprobs, masked_mean, masked_sum, masked_whiten, position_ids_from_mask,
-                                sequence_logprobs, unwrap_model)
+from posttrain.logprobs import batched_logprobs, masked_mean, masked_sum, masked_whiten, sequence_logprobs
+from posttrain.models import load_reward_init, position_ids_from_mask, resolve_dtype, unwrap_model
 from posttrain.losses import kl_penalty, ppo_policy_loss, value_loss
 
 
@@ -268,8 +270,6 @@ def build_value_model(value_init: str, sft_dir: Path, rm_dir: Path | None, pad_i
     """Detail 11: the value model, a sequence-classification model whose head is read at every token."""
     from transformers import AutoModelForSequenceClassification
 
-    from posttrain.models import resolve_dtype
-    from posttrain.trainers.reward import load_reward_init
 
     if value_init == "reward":
         if rm_dir is None:
@@ -286,7 +286,7 @@ def token_values(value_model, input_ids: torch.Tensor, attention_mask: torch.Ten
 
     values[:, t] = V(input_ids[:, :t]) = the head on the hidden state of token t-1, i.e. the value of
     the state in which token t is chosen; column 0 is 0. Positions count real tokens (left padding).
-    A plain fp32 Llama-family value model runs `posttrain.lean_train.lean_hidden` (called inside DDP's forward
+    A plain fp32 Llama-family value model runs `posttrain.lean.train.lean_hidden` (called inside DDP's forward
     when wrapped, see `TokenValueModel`), else its decoder's own forward.
     """
     inner = unwrap_model(value_model)
@@ -295,8 +295,8 @@ def token_values(value_model, input_ids: torch.Tensor, attention_mask: torch.Ten
     base = getattr(inner, inner.base_model_prefix)
     dev = next(inner.parameters()).device
     input_ids, attention_mask = input_ids.to(dev), attention_mask.to(dev)
-    if lean_train.lean_train_support(inner, input_ids.shape[1], head="score")[0]:  # same numbers, fewer ops
-        hidden = lean_train.lean_hidden(inner, input_ids, attention_mask)  # (B, T, H)
+    if lean_support(inner, input_ids.shape[1], mode="train", head="score")[0]:  # same numbers, fewer ops
+        hidden = lean.lean_hidden(inner, input_ids, attention_mask)  # (B, T, H)
     else:
         hidden = base(input_ids=input_ids, attention_mask=attention_mask,
                       position_ids=position_ids_from_mask(attention_mask)).last_hidden_state  # (B, T, H)
@@ -466,7 +466,7 @@ def train(res: Resolved, ensure) -> Path:
     check_config(cfg)
     run_dir = res.stage_dir()
     task = tasks.get_task(res.task.name)
-    has_gold = hasattr(task, "gold_breakdown") or hasattr(task, "gold_quality")
+    has_gold = tasks.has_gold(task)
     if cfg.reward == "gold" and not has_gold:
         raise ConfigError(f"ppo.reward=gold needs a task with a gold metric; {res.task.name!r} has none")
     if cfg.reward_model and not is_model_dir(cfg.reward_model):

@@ -84,7 +84,7 @@ class RMConfig:
 
 def pair_rewards(model, pairs: list[TokenizedPair], pad_id: int) -> torch.Tensor:
     """(2B,) rewards: chosen rows first, then rejected, in ONE forward over left-padded rows."""
-    from posttrain.logprobs import model_device
+    from posttrain.models import model_device
 
     seqs = [p.prompt + p.chosen for p in pairs] + [p.prompt + p.rejected for p in pairs]
     input_ids, attention_mask = left_pad(seqs, pad_id)  # (2B, T), (2B, T)
@@ -109,25 +109,10 @@ def heldout_metrics(model, pairs: list[TokenizedPair], pad_id: int, micro: int) 
     return {f"eval/{k}": v / len(pairs) for k, v in sums.items()}
 
 
-def load_reward_init(sft_dir: Path, pad_id: int, seed: int, device, dtype: str | torch.dtype = torch.float32):
-    """The SFT transformer under a new one-output head (`AutoModelForSequenceClassification`, seeded init);
-    weights in `dtype` (a `model.dtype` name or a torch dtype)."""
-    from transformers import AutoModelForSequenceClassification
-
-    from posttrain.models import resolve_dtype
-
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        model = AutoModelForSequenceClassification.from_pretrained(str(sft_dir), num_labels=1,
-                                                                   dtype=resolve_dtype(dtype), local_files_only=True)
-    model.config.pad_token_id = pad_id
-    return model.to(device)
-
-
 def train(res: Resolved, ensure) -> Path:
     """Train a reward model on preference pairs; returns the final HF directory."""
     from posttrain import preferences
-    from posttrain.models import load_tokenizer, maybe_lora, save_model
+    from posttrain.models import load_reward_init, load_tokenizer, maybe_lora, save_model
 
     cfg: RMConfig = res.stage_cfg
     run_dir = res.stage_dir()

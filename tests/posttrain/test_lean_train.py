@@ -1,4 +1,4 @@
-"""posttrain.lean_train: the lean training forward equals the HF forward (logits and every parameter's
+"""posttrain.lean.train: the lean training forward equals the HF forward (logits and every parameter's
 gradient) on padded batches, sequence_logprobs gives the same numbers with the switch on and off, and
 unsupported models fall back to the HF forward.
 
@@ -12,7 +12,9 @@ import pytest
 import torch
 from torch import nn
 
-from posttrain import lean_train
+from posttrain.lean import support
+from posttrain.lean import train as lean_train
+from posttrain.lean.support import lean_support
 from posttrain.logprobs import position_ids_from_mask, sequence_logprobs
 
 V = 97
@@ -107,7 +109,7 @@ def _batch(padding: str, B=4, T=13, seed=0):
 @pytest.mark.parametrize("padding", ["none", "left", "right", "both"])
 def test_logits_and_gradients_equal_hf(name, padding):
     model = MODELS[name]()
-    ok, why = lean_train.lean_train_support(model, 13)
+    ok, why = lean_support(model, 13, mode="train")
     assert ok, why
     ids, am, cm = _batch(padding)
     if padding != "none":
@@ -132,15 +134,15 @@ def test_logits_and_gradients_equal_hf(name, padding):
 
 
 def _run(model, ids, am, cm, enabled, **kw):
-    before = lean_train.ENABLED
-    lean_train.ENABLED = enabled
+    before = support.ENABLED
+    support.ENABLED = enabled
     try:
         model.zero_grad(set_to_none=True)
         lp, ent = sequence_logprobs(model, ids, am, cm, **kw)
         (lp.sum() * 0.7).backward()
         return lp.detach(), ent, {n: p.grad.clone() for n, p in model.named_parameters()}
     finally:
-        lean_train.ENABLED = before
+        support.ENABLED = before
 
 
 @pytest.mark.parametrize("name", ["llama-mha-tied", "qwen2-gqa-bias"])
@@ -164,15 +166,15 @@ def test_sequence_logprobs_switch_on_equals_off(name, temperature, entropy, monk
         torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
     # entropy with its gradient (PPO's entropy bonus): the loss is log-probs + entropy
     def run_ent(enabled):
-        before = lean_train.ENABLED
-        lean_train.ENABLED = enabled
+        before = support.ENABLED
+        support.ENABLED = enabled
         try:
             model.zero_grad(set_to_none=True)
             lp, ent = sequence_logprobs(model, ids, am, cm, temperature=temperature, return_entropy=True)
             (lp.sum() + 0.3 * ent.sum()).backward()
             return lp.detach(), ent.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}
         finally:
-            lean_train.ENABLED = before
+            support.ENABLED = before
 
     calls.clear()
     lp2, e2, g2 = run_ent(True)
@@ -183,7 +185,7 @@ def test_sequence_logprobs_switch_on_equals_off(name, temperature, entropy, monk
     for n in g4:
         torch.testing.assert_close(g2[n], g4[n], rtol=1e-4, atol=1e-5 * float(g4[n].abs().max()), msg=n)
     calls.clear()
-    monkeypatch.setattr(lean_train, "ENABLED", True)
+    monkeypatch.setattr(support, "ENABLED", True)
     with torch.no_grad():  # and under no_grad (reference / old log-probs) the lean path runs too
         lp3, _ = sequence_logprobs(model, ids, am, cm, temperature=temperature)
     assert calls
@@ -192,7 +194,7 @@ def test_sequence_logprobs_switch_on_equals_off(name, temperature, entropy, monk
 
 def test_unsupported_models_fall_back():
     model = _llama()
-    assert lean_train.lean_train_support(model, 13)[0]
+    assert lean_support(model, 13, mode="train")[0]
 
     class Wrapper(nn.Module):  # DDP-like: the HF model in .module, its own forward
         def __init__(self, m):
@@ -202,39 +204,39 @@ def test_unsupported_models_fall_back():
         def forward(self, **kw):
             return self.module(**kw)
 
-    ok, why = lean_train.lean_train_support(Wrapper(model))
+    ok, why = lean_support(Wrapper(model), mode="train")
     assert not ok and "ForCausalLM" in why
 
     from peft import LoraConfig, get_peft_model
 
     peft_model = get_peft_model(_llama(), LoraConfig(r=2, target_modules=["q_proj", "v_proj"]))
-    assert not lean_train.lean_train_support(peft_model)[0]
-    assert not lean_train.lean_train_support(peft_model.get_base_model())[0]  # LoRA layers inside
+    assert not lean_support(peft_model, mode="train")[0]
+    assert not lean_support(peft_model.get_base_model(), mode="train")[0]  # LoRA layers inside
 
     gc = _llama()
     gc.gradient_checkpointing_enable()
-    ok, why = lean_train.lean_train_support(gc)
+    ok, why = lean_support(gc, mode="train")
     assert not ok and "checkpointing" in why
 
-    ok, why = lean_train.lean_train_support(_llama(attention_dropout=0.1))
+    ok, why = lean_support(_llama(attention_dropout=0.1), mode="train")
     assert not ok and "dropout" in why
 
-    ok, why = lean_train.lean_train_support(_llama(hidden_act="gelu"))
+    ok, why = lean_support(_llama(hidden_act="gelu"), mode="train")
     assert not ok and "hidden_act" in why
 
-    ok, why = lean_train.lean_train_support(_llama().double())
+    ok, why = lean_support(_llama().double(), mode="train")
     assert not ok and "fp32" in why
 
     hooked = _llama()
     hooked.model.layers[0].mlp.register_forward_hook(lambda *a: None)
-    assert not lean_train.lean_train_support(hooked)[0]
+    assert not lean_support(hooked, mode="train")[0]
 
     from transformers import MistralConfig, MistralForCausalLM
 
     windowed = MistralForCausalLM(MistralConfig(vocab_size=V, hidden_size=64, intermediate_size=96,
                                                 num_hidden_layers=1, num_attention_heads=4, num_key_value_heads=2,
                                                 sliding_window=8))
-    assert lean_train.lean_train_support(windowed, 8)[0] and not lean_train.lean_train_support(windowed, 9)[0]
+    assert lean_support(windowed, 8, mode="train")[0] and not lean_support(windowed, 9, mode="train")[0]
 
     # The wrapped / adapted / checkpointed models still give HF's numbers through sequence_logprobs.
     ids, am, cm = _batch("left")
@@ -242,24 +244,24 @@ def test_unsupported_models_fall_back():
     out, _ = sequence_logprobs(Wrapper(model), ids, am, cm)
     torch.testing.assert_close(out, ref)
 
-    before = lean_train.ENABLED
+    before = support.ENABLED
     try:
-        lean_train.ENABLED = False
-        ok, why = lean_train.lean_train_support(model)
+        support.ENABLED = False
+        ok, why = lean_support(model, mode="train")
         assert not ok and "disabled" in why
     finally:
-        lean_train.ENABLED = before
+        support.ENABLED = before
 
 
 def test_environment_variable_turns_it_off(monkeypatch):
     try:
         monkeypatch.setenv("POSTTRAIN_LEAN_TRAIN", "0")
-        assert importlib.reload(lean_train).ENABLED is False
+        assert importlib.reload(support).ENABLED is False
         monkeypatch.setenv("POSTTRAIN_LEAN_TRAIN", "1")
-        assert importlib.reload(lean_train).ENABLED is True
+        assert importlib.reload(support).ENABLED is True
     finally:
         monkeypatch.delenv("POSTTRAIN_LEAN_TRAIN")
-        importlib.reload(lean_train)
+        importlib.reload(support)
 
 
 def test_fused_token_logprobs_equal_autograd():
@@ -346,12 +348,12 @@ def test_shared_prefix_forward_equals_unshared(name):
     finally:
         lean_train.lean_forward_shared = real
     assert calls, "sequence_logprobs did not share the prompts"
-    before = lean_train.ENABLED
-    lean_train.ENABLED = False
+    before = support.ENABLED
+    support.ENABLED = False
     try:
         lp0, _ = sequence_logprobs(model, ids, am, cm)
     finally:
-        lean_train.ENABLED = before
+        support.ENABLED = before
     torch.testing.assert_close(lp1, lp0, atol=1e-5, rtol=2e-6)
 
 
@@ -389,8 +391,8 @@ def test_reward_and_value_forwards_equal_hf(kind):
     from posttrain.trainers.ppo import token_values
 
     model = _seqcls(kind)
-    assert lean_train.lean_train_support(model, 13, head="score")[0]
-    assert not lean_train.lean_train_support(model, 13)[0]  # not a causal LM
+    assert lean_support(model, 13, head="score", mode="train")[0]
+    assert not lean_support(model, 13, mode="train")[0]  # not a causal LM
     ids, am, _ = _batch("left")
     w = torch.randn(ids.shape, generator=torch.Generator().manual_seed(5))
     real = am.clone()  # values[:, t] come from token t-1: compare where both are real (pad rows are never used)
@@ -398,15 +400,15 @@ def test_reward_and_value_forwards_equal_hf(kind):
     real[:, 0] = 0
 
     def run(enabled, fn):
-        before = lean_train.ENABLED
-        lean_train.ENABLED = enabled
+        before = support.ENABLED
+        support.ENABLED = enabled
         try:
             model.zero_grad(set_to_none=True)
             out = fn(model, ids, am)
             (out * (w[:, 0] if out.dim() == 1 else w * real)).sum().backward()
             return out.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}
         finally:
-            lean_train.ENABLED = before
+            support.ENABLED = before
 
     for fn in (reward_forward, token_values):
         out0, g0 = run(False, fn)
@@ -421,12 +423,11 @@ def test_reward_and_value_forwards_equal_hf(kind):
 def test_sharded_parameters_are_not_read_by_the_lean_paths():
     """FSDP-wrapped modules or DeepSpeed ZeRO-3 partitioned parameters hold only a shard outside the model's own
     forward: both lean paths (training forward, rollout engine) refuse them and say why."""
-    from posttrain.rollout.backends import lean_support
 
     model = _llama()
-    assert lean_train.lean_train_support(model, 13)[0] and lean_support(model, 13)[0]
+    assert lean_support(model, 13, mode="train")[0] and lean_support(model, 13, mode="decode")[0]
     model.model.layers[0].mlp.up_proj.weight.ds_id = 7  # what ZeRO-3 puts on its parameters
-    for ok, why in (lean_train.lean_train_support(model, 13), lean_support(model, 13)):
+    for ok, why in (lean_support(model, 13, mode="train"), lean_support(model, 13, mode="decode")):
         assert not ok and "ZeRO-3" in why
     del model.model.layers[0].mlp.up_proj.weight.ds_id
 
@@ -436,7 +437,7 @@ def test_sharded_parameters_are_not_read_by_the_lean_paths():
             self._fsdp_wrapped_module = inner
 
     model.model.add_module("wrapped", FullyShardedDataParallel(nn.Linear(2, 2)))
-    for ok, why in (lean_train.lean_train_support(model, 13), lean_support(model, 13)):
+    for ok, why in (lean_support(model, 13, mode="train"), lean_support(model, 13, mode="decode")):
         assert not ok and "FSDP" in why
 
 
@@ -458,8 +459,8 @@ def test_packed_logprobs_lean_equals_hf(name):
     w = torch.randn(b["targets"].shape, generator=g)
 
     def run(enabled):
-        before = lean_train.ENABLED
-        lean_train.ENABLED = enabled
+        before = support.ENABLED
+        support.ENABLED = enabled
         try:
             model.zero_grad(set_to_none=True)
             lp = packed_logprobs(model, b["input_ids"], b["position_ids"], b["allowed"], b["pred_index"],
@@ -467,7 +468,7 @@ def test_packed_logprobs_lean_equals_hf(name):
             (lp * w).sum().backward()
             return lp.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}
         finally:
-            lean_train.ENABLED = before
+            support.ENABLED = before
 
     lp0, g0 = run(False)
     calls = []
@@ -488,14 +489,13 @@ def test_autocast_falls_back_to_the_model_forward():
     """Under torch.autocast (mixed precision) both lean paths step aside: the HF forward follows the autocast
     policy and sequence_logprobs still returns fp32 log-probs; generation still runs."""
     from posttrain.rollout import generate
-    from posttrain.rollout.backends import lean_support
 
     model = _llama()
     ids, am, cm = _batch("both")
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        ok, why = lean_train.lean_train_support(model, 13)
+        ok, why = lean_support(model, 13, mode="train")
         assert not ok and "autocast" in why
-        ok, why = lean_support(model, 13)
+        ok, why = lean_support(model, 13, mode="decode")
         assert not ok and "autocast" in why
         with torch.no_grad():
             lp, _ = sequence_logprobs(model, ids, am, cm)
@@ -504,7 +504,7 @@ def test_autocast_falls_back_to_the_model_forward():
     with torch.no_grad():
         lp32, _ = sequence_logprobs(model, ids, am, cm)
     assert float((lp - lp32).abs().max()) < 0.5  # bf16 compute: close, not equal
-    assert lean_train.lean_train_support(model, 13)[0]  # and back on outside autocast
+    assert lean_support(model, 13, mode="train")[0]  # and back on outside autocast
     # accelerate's mixed precision (Accelerator.prepare_model with native amp) keeps the original forward in
     # `_original_forward` and wraps `forward` in autocast: that forward is used, not the lean one. Done by hand
     # here, as accelerate does, because a real Accelerator would fix the process-wide AcceleratorState.
@@ -519,7 +519,7 @@ def test_autocast_falls_back_to_the_model_forward():
             return inner_forward(self, *a, **k)
 
     prepared.forward = types.MethodType(autocast_forward, prepared)
-    ok, why = lean_train.lean_train_support(prepared, 13)
+    ok, why = lean_support(prepared, 13, mode="train")
     assert not ok and "mixed precision" in why
     with torch.no_grad():
         lp_mp, _ = sequence_logprobs(prepared, ids, am, cm)

@@ -224,8 +224,27 @@ def test_sampling_logprobs_match_recomputed(trained):
         if "top_p" not in params:  # unfiltered: the sampler's distribution is softmax(logits / T)
             sampled, _ = batched_logprobs(model, batch, micro_batch_size=4, temperature=params["temperature"])
             torch.testing.assert_close(sampled * batch.completion_mask, batch.logprobs, atol=1e-4, rtol=0)
-        else:  # renormalised over the nucleus: never below the unfiltered log-prob
-            assert (batch.logprobs >= batch.policy_logprobs - 1e-4).all()
+        else:  # the nucleus distribution, recomputed independently of the sampler
+            expected = _nucleus_logprobs(model, batch, params["temperature"], params["top_p"])
+            torch.testing.assert_close(expected, batch.logprobs, atol=1e-4, rtol=0)
+
+
+def _nucleus_logprobs(model, batch, temperature: float, top_p: float) -> torch.Tensor:
+    """log q(token) where q is softmax(logits / T) restricted to the nucleus (tokens sorted by probability, kept
+    while the mass strictly before them is < top_p) and renormalised: the distribution top-p sampling draws
+    from, computed here in float64 from a plain HF forward, not from the sampler's code. (B, T), 0 off-mask."""
+    am = batch.attention_mask
+    with torch.no_grad():
+        logits = model(input_ids=batch.input_ids, attention_mask=am,
+                       position_ids=(am.long().cumsum(-1) - 1).clamp(min=0)).logits.double()  # (B, T, V)
+    probs = torch.softmax(logits[:, :-1] / temperature, -1)  # (B, T-1, V): next-token distributions
+    sorted_p, order = probs.sort(-1, descending=True)
+    keep = torch.zeros_like(probs, dtype=torch.bool).scatter(-1, order, (sorted_p.cumsum(-1) - sorted_p) < top_p)
+    kept = probs * keep
+    q = kept.gather(-1, batch.input_ids[:, 1:, None])[..., 0] / kept.sum(-1)  # (B, T-1)
+    out = torch.zeros(batch.input_ids.shape, dtype=torch.float64)
+    out[:, 1:] = q.log()
+    return torch.where(batch.completion_mask.bool(), out, torch.zeros_like(out)).float()
 
 
 # ------------------------------------------------------------------ finishing: EOS, stop strings, length

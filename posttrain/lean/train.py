@@ -1,171 +1,63 @@
 """A lean, differentiable forward for Llama-family causal LMs: the training-side twin of the rollout
-engine's `LeanLlama`, used by `posttrain.logprobs.sequence_logprobs` for the policy update (under
-autograd) and for reference / old-policy log-probs (under no-grad), by `logprobs.packed_logprobs` (DPO's
-shared-prompt rows), and, through `lean_hidden`, by the reward and value models' forwards.
+engine's `posttrain.lean.decode.LeanLlama`, used by `posttrain.logprobs.sequence_logprobs` for the policy
+update (under autograd) and for reference / old-policy log-probs (under no-grad), by
+`logprobs.packed_logprobs` (DPO's shared-prompt rows), and, through `lean_hidden`, by the reward and value
+models' forwards (`scoring.reward_forward`, PPO's `token_values`).
 
-CPU: `python -c "import posttrain.lean_train"` (exercised by tests/posttrain/test_lean_train.py).
+CPU: `python -c "import posttrain.lean.train"` (exercised by tests/posttrain/lean/test_lean_train.py).
 Multi-GPU: a DDP / FSDP / peft wrapper is never run here (it needs its own forward for gradient sync or
 adapters): `sequence_logprobs` then calls the model's own forward.
 
-What it computes: the same numbers as `model(input_ids=, attention_mask=, position_ids=).logits`
-(equal within fp32 rounding, tested: logits 1e-5 absolute, gradients of every parameter), for left-,
-right- or un-padded (B, T) batches with a 0/1 attention mask and explicit position_ids. It reads the
-live parameters on every call (nothing is cached), so gradients reach each parameter as in the HF
-module and the optimizer may change them freely between calls.
+What it computes: the same numbers as `model(input_ids=, attention_mask=, position_ids=).logits` (equal
+within fp32 rounding, tested: logits 1e-5 absolute, gradients of every parameter), for left-, right- or
+un-padded (B, T) batches with a 0/1 attention mask and explicit position_ids. It reads the live
+parameters on every call (nothing is cached), so gradients reach each parameter as in the HF module and
+the optimizer may change them freely between calls. What it runs: `lean_support(model, T, mode="train")`
+(`posttrain.lean.support`); anything else falls back to the HF forward.
 
-Supported (`lean_train_support`): the object passed is itself a `*ForCausalLM` (or, with head="score",
-`*ForSequenceClassification`) `PreTrainedModel` of model type llama / mistral / qwen2 (not
-DDP/FSDP/peft/torch.compile-wrapped, no sharded parameters), fp32 weights on one
-device, plain nn.Linear projections (biases anywhere, as qwen2's q/k/v), Llama-style RMSNorm, silu
-MLP, RoPE with static frequencies (default, linear, llama3, yarn: `inv_freq` and `attention_scaling`
-read from the module; not dynamic / longrope), MHA or GQA, tied or untied embeddings,
-attention_dropout 0, no gradient checkpointing, no module hooks, no q/k norms or logit soft-capping,
-and a sequence no longer than a sliding window. Anything else returns the reason and the caller
-falls back to the HF forward.
-
-Why: at the `tiny` preset (d=128) the HF module-per-op structure costs as much as the matmuls: RoPE
-alone is ~10 elementwise ops per layer (cos/sin broadcast muls, rotate_half's slice+neg+cat and their
-backward), the mask is rebuilt through `create_causal_mask`, and the loss on the logits adds a
-zero-fill, a scatter and an add of a (B, T, V) tensor to the backward. Implementation details
-(each measured alone on the tiny preset, kept only when faster):
-- RoPE as one complex multiply: the q/k weight rows (and biases) of each head are permuted from the
-  half-split pairing (x_i, x_{i+Dh/2}) that `rotate_half` uses to interleaved pairs by an
-  `index_select` on the parameters every call (differentiable, 16K floats per matrix), so
-  rotating is `view_as_complex(q) * cis`; q.k is unchanged by permuting q and k alike, v untouched.
-  The (B, T, Dh/2) cos/sin table is computed once per call with the same expression as
-  `LlamaRotaryEmbedding` (`position_ids * inv_freq`, times `attention_scaling`).
-- RMSNorm weights are folded into the weight of each following projection (`W * w`, differentiable):
-  a norm is x * rsqrt(mean(x^2) + eps), one activation-sized multiply fewer per norm.
-- Attention: `F.scaled_dot_product_attention` with `is_causal` when there is no padding, else one
-  boolean (B, 1, T, T) mask built once per call (padding queries see themselves, so no softmax row is
-  empty: their outputs are finite and never reach a real token). GQA through `enable_gqa`.
-- q/k/v and gate/up are NOT fused into one matmul: measured slower on CPU at these sizes (a
-  (1440,128)x(128,1024) mm took 1.35x the time of two (128,512) ones, and the split's backward is a cat).
+Why: at the `tiny` preset (d=128) the HF module-per-op structure costs as much as the matmuls (RoPE's
+cos/sin broadcasts and rotate_half, the mask rebuilt by `create_causal_mask`, the loss's (B, T, V)
+zero-fill + scatter in the backward). Implementation details, each measured alone and kept only when
+faster (figures in RESULTS.md):
+- RoPE as one complex multiply (`support.rope_pair_order` / `rope_cis`): the q/k weight rows (and
+  biases) are permuted to interleaved pairs by an `index_select` on the parameters every call
+  (differentiable), the (N, D/2) factors computed once per call.
+- RMSNorm weights folded into the weight of each following projection (`W * w`, differentiable): one
+  activation-sized multiply fewer per norm.
+- Attention: `F.scaled_dot_product_attention` with `is_causal` when nothing is padded, else one boolean
+  (B, 1, T, T) mask built once per call (pad queries see themselves, so no softmax row is empty). GQA
+  through `enable_gqa`.
+- q/k/v and gate/up NOT fused into one matmul (slower on CPU at these sizes; the split's backward is a cat).
 - Logits only for the columns the caller needs (`positions`), and `token_logprobs_fused`: log p(target)
-  and the entropy from one softmax pass, with a backward that is one multiply plus a scatter (autograd's
-  logsumexp + gather + slice backward is ~8 passes over (B, T, V)); the entropy's own gradient (PPO's
-  entropy bonus) is -p * (x - E_p[x]). The temperature is folded into the final norm weight, so no
-  (B, T, V) division.
-- Shared prompts (`lean_forward_shared`, chosen by `logprobs.sequence_logprobs` when it leaves at most
-  `SHARE_PREFIX_BELOW` of the tokens): rows whose columns before the first scored one are identical (GRPO's
-  K completions of a prompt) run that prefix once; each row's completion tokens attend to the gathered
-  prefix keys/values plus their own, so gradients from every row reach the shared computation. Tokens are
-  kept as one flat (N, d) matrix through the projections and MLP, so sharing adds no matmul calls, only a
-  second attention call per layer. GRPO-like update (16 rows = 2 prompts x 8, 26 prompt + 64 completion
-  columns, 2 threads): 66.5 -> 56.6 ms (`tests/posttrain/test_lean_train.py` checks logits and gradients).
-- Reward and value models (`*ForSequenceClassification`, `lean_train_support(..., head="score")`):
-  `lean_hidden` gives the decoder's normed last hidden states; `scoring.reward_forward` (reward-model training
-  and scoring) and `trainers.ppo.token_values` apply the model's `score` layer to them. RM / value step of
-  32 rows x 118 columns on `tiny`, 1 thread: 313 -> 288 ms.
-- Never on sharded weights (`rollout.backends.sharded_problem`): FSDP / DTensor / DeepSpeed ZeRO-3
-  parameters hold a shard outside the model's own forward, so both lean paths refuse them.
-- Not tried / not kept: a vector_norm/hypot RMSNorm (as `LeanLlama`) measured ~1% per norm faster in
-  isolation, not worth the extra rounding; explicit-matmul attention was slower than SDPA here (its
-  backward keeps the (B, H, T, T) probabilities); a flip-based rotate_half was slower than the complex
-  multiply.
+  and the entropy from one softmax pass, with a backward that is one multiply plus a scatter; the
+  entropy's own gradient (PPO's entropy bonus) is -p * (x - E_p[x]). The temperature is folded into the
+  final norm weight, so no (B, T, V) division.
+- Shared prompts (`lean_forward_shared`, chosen by `sequence_logprobs` when it leaves at most
+  `SHARE_PREFIX_BELOW` of the tokens): rows whose columns before the first scored one are identical
+  (GRPO's K completions of a prompt) run that prefix once; each row's completion tokens attend to the
+  gathered prefix keys/values plus their own, so gradients from every row reach the shared computation.
+- Not kept: a vector_norm/hypot RMSNorm (as `LeanLlama`; ~1% faster, more rounding), explicit-matmul
+  attention (slower; its backward keeps the (B, H, T, T) probabilities), a flip-based rotate_half.
 
-Speed (tiny preset, vocab 1024, `sequence_logprobs` + backward + fused AdamW step, GRPO-like batches
-with left-padded prompts and right-padded completions, 1 thread, medians of 7 alternating runs, a
-shared 2-core machine): (16, 90) 140 -> 121 ms (0.86x); (8, 256) 217 -> 196 ms (0.90x). Of that, the
-lean forward/backward of the decoder is ~6% (RoPE and norm ops, the mask) and the fused log-prob
-backward plus computing only the needed logit columns ~8%.
-
-Switch: `posttrain.lean_train.ENABLED = False`, or the environment variable POSTTRAIN_LEAN_TRAIN=0,
-makes `sequence_logprobs` always use the model's own forward (for debugging or comparison).
+Switch: `posttrain.lean.support.ENABLED = False`, or POSTTRAIN_LEAN_TRAIN=0 in the environment, makes
+`sequence_logprobs` and the reward / value forwards always use the model's own forward.
 """
 from __future__ import annotations
 
-import os
-
 import torch
 import torch.nn.functional as F
-from torch import nn
 
-from .logprobs import position_ids_from_mask
-from .rollout.backends import autocast_problem, llama_family_problem, sharded_problem
-
-ENABLED = os.environ.get("POSTTRAIN_LEAN_TRAIN", "1").strip().lower() not in ("0", "false", "no", "off")
-LEAN_MODEL_TYPES = ("llama", "mistral", "qwen2")
+from ..models import position_ids_from_mask
+from .support import rope_cis, rope_pair_order
 
 _PERMS: dict = {}
-
-
-def lean_train_support(model, seq_len: int | None = None, head: str = "lm") -> tuple[bool, str]:
-    """Whether the lean forward can replace `model`'s own forward (for sequences of `seq_len` tokens), and why
-    (not). head="lm": a `*ForCausalLM` for `lean_forward` (logits); head="score": a `*ForSequenceClassification`
-    (reward / value model) for `lean_hidden` (its decoder's last hidden states, then its `score` layer)."""
-    if not ENABLED:
-        return False, "disabled (posttrain.lean_train.ENABLED / POSTTRAIN_LEAN_TRAIN=0)"
-    from transformers import PreTrainedModel
-
-    kind = {"lm": "ForCausalLM", "score": "ForSequenceClassification"}[head]
-    if not isinstance(model, PreTrainedModel) or not type(model).__name__.endswith(kind):
-        return False, f"{type(model).__name__} is not a *{kind} PreTrainedModel (a wrapper runs its own forward)"
-    if hasattr(model, "peft_config") or hasattr(model, "get_base_model"):
-        return False, "peft model"
-    cfg = model.config
-    mt = getattr(cfg, "model_type", None)
-    if mt not in LEAN_MODEL_TYPES:
-        return False, f"model_type {mt!r} is not one of {LEAN_MODEL_TYPES}"
-    if any(getattr(mod, "gradient_checkpointing", False) is True for mod in model.modules()):
-        return False, "gradient checkpointing is enabled"
-    if float(getattr(cfg, "attention_dropout", 0.0) or 0.0) != 0.0:
-        return False, f"attention_dropout {cfg.attention_dropout} (the lean path has no dropout)"
-    window = getattr(cfg, "sliding_window", None)
-    if window is not None and getattr(cfg, "use_sliding_window", True) is not False and \
-            (seq_len is None or seq_len > window):
-        return False, f"sequence length {seq_len} may exceed the sliding window {window}"
-    base, out = getattr(model, "model", None), getattr(model, "lm_head" if head == "lm" else "score", None)
-    if base is None or type(out) is not nn.Linear or type(getattr(base, "embed_tokens", None)) is not nn.Embedding:
-        return False, f"no plain nn.Linear {'lm_head' if head == 'lm' else 'score'} / nn.Embedding model.embed_tokens"
-    emb = base.embed_tokens
-    if emb.max_norm is not None or emb.scale_grad_by_freq or emb.sparse:
-        return False, "embedding with max_norm / scale_grad_by_freq / sparse"
-    params = list(model.parameters())
-    if any(p.dtype != torch.float32 for p in params):
-        return False, "not every parameter is fp32"
-    devices = {p.device for p in params}
-    if len(devices) != 1 or next(iter(devices)).type == "meta":
-        return False, f"weights on several devices or on meta ({sorted(str(d) for d in devices)})"
-    why = autocast_problem(next(iter(devices)))
-    if why:
-        return False, why
-    if "_original_forward" in vars(model):  # accelerate's mixed precision patched forward (autocast inside it)
-        return False, "accelerate mixed precision: the model's autocast forward is used"
-    why = llama_family_problem(cfg, base)
-    if why:
-        return False, why
-    why = sharded_problem(model)
-    if why:
-        return False, why
-    for mod in model.modules():
-        if mod._forward_hooks or mod._forward_pre_hooks or hasattr(mod, "_hf_hook"):
-            return False, f"a forward hook on {type(mod).__name__} (the lean path would skip it)"
-    for layer in base.layers[:cfg.num_hidden_layers]:
-        att, mlp = getattr(layer, "self_attn", None), getattr(layer, "mlp", None)
-        try:
-            lins = [att.q_proj, att.k_proj, att.v_proj, att.o_proj, mlp.gate_proj, mlp.up_proj, mlp.down_proj]
-        except AttributeError:
-            return False, "a decoder layer without the Llama projections"
-        if any(type(m) is not nn.Linear for m in lins):
-            return False, "a layer projection is not a plain nn.Linear (quantised or an adapter)"
-        for norm in (layer.input_layernorm, layer.post_attention_layernorm):
-            if not type(norm).__name__.endswith("RMSNorm") or not hasattr(norm, "variance_epsilon"):
-                return False, "a layer norm is not a Llama-style RMSNorm"
-        if hasattr(att, "q_norm") or hasattr(att, "k_norm"):
-            return False, "q/k norms are not implemented in the lean path"
-    if not hasattr(base.norm, "variance_epsilon"):
-        return False, "the final norm is not a Llama-style RMSNorm"
-    return True, f"lean training forward ({mt})"
 
 
 def _perm(heads: int, D: int, device) -> torch.Tensor:
     """Row order that turns each head's half-split RoPE pairs (i, i + D/2) into interleaved pairs."""
     key = (heads, D, str(device))
     if key not in _PERMS:
-        half = torch.arange(D // 2)
-        one = torch.stack([half, half + D // 2], 1).reshape(-1)  # (D,)
-        _PERMS[key] = (one[None] + D * torch.arange(heads)[:, None]).reshape(-1).to(device)
+        _PERMS[key] = rope_pair_order(heads, D).to(device)
     return _PERMS[key]
 
 
@@ -186,9 +78,7 @@ def _dims(model):
 def _cis(model, position_ids: torch.Tensor) -> torch.Tensor:
     """(...) positions -> (..., 1, D/2) complex RoPE factors, as LlamaRotaryEmbedding computes them."""
     rot = model.model.rotary_emb
-    freqs = position_ids[..., None].float() * rot.inv_freq.float()  # (..., D/2), LlamaRotaryEmbedding's expression
-    sc = float(getattr(rot, "attention_scaling", 1.0))
-    return torch.complex(freqs.cos() * sc, freqs.sin() * sc)[..., None, :]
+    return rope_cis(rot.inv_freq, float(getattr(rot, "attention_scaling", 1.0)), position_ids)[..., None, :]
 
 
 def _allowed(valid: torch.Tensor) -> torch.Tensor | None:
@@ -269,7 +159,7 @@ def _rows_forward(model, input_ids: torch.Tensor, attention_mask: torch.Tensor |
 def lean_forward(model, input_ids: torch.Tensor, attention_mask: torch.Tensor, position_ids: torch.Tensor,
                  logits_to_keep: int = 0, *, positions: slice | None = None,
                  temperature: float = 1.0) -> torch.Tensor:
-    """Logits (B, K, V) fp32 of a supported model (see `lean_train_support`), differentiable.
+    """Logits (B, K, V) fp32 of a supported model (see `lean_support(model, T, mode="train")`), differentiable.
 
     input_ids, attention_mask (0/1), position_ids: (B, T). Columns kept: the last `logits_to_keep`
     (0: all), as HF's argument does, or `positions` (a slice of columns) when given. `temperature`
@@ -285,7 +175,7 @@ def lean_forward(model, input_ids: torch.Tensor, attention_mask: torch.Tensor, p
 def lean_hidden(model, input_ids: torch.Tensor, attention_mask: torch.Tensor,
                 position_ids: torch.Tensor | None = None) -> torch.Tensor:
     """The decoder's last hidden states (B, T, d) after the final norm: what `model.model(...).last_hidden_state`
-    returns, for a supported `*ForSequenceClassification` (`lean_train_support(model, T, head="score")`) or
+    returns, for a supported `*ForSequenceClassification` (`lean_support(model, T, mode="train", head="score")`) or
     `*ForCausalLM`; differentiable. position_ids default to cumsum(attention_mask) - 1 (clamped at 0)."""
     if position_ids is None:
         position_ids = position_ids_from_mask(attention_mask)

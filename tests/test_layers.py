@@ -1,0 +1,208 @@
+"""The package's layers (ARCHITECTURE.md): nothing imports upward, there are no import cycles, no trainer
+imports another, and `verifiers/` imports nothing of posttrain or torch.
+
+Read from the source with `ast` (every import statement, also those inside functions: a lazy import still
+ties two modules together), so the check needs no imports of its own and runs in milliseconds.
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Bottom to top. A module's unit is its first component under posttrain/ (posttrain.rollout.engine -> rollout).
+LAYERS: list[set[str]] = [
+    {"errors", "runtime"},
+    {"config"},
+    {"data", "tasks", "chat", "models"},
+    {"lean"},
+    {"logprobs", "losses", "advantages"},
+    {"rollout", "loop", "sharding"},
+    {"scoring", "evaluation", "preferences"},
+    {"trainers"},
+    {"cli", "__main__", "__init__"},
+]
+LAYER_OF = {unit: i for i, units in enumerate(LAYERS) for unit in units}
+# Packages of data files only (pyproject maps recipes/ to posttrain.recipes): nothing to import from.
+DATA_PACKAGES = {"posttrain.recipes", "posttrain.recipes.launch"}
+
+
+def module_files(package_dir: Path) -> dict[str, Path]:
+    """Dotted module name -> file, for every .py file of the package at `package_dir` (a package's own name
+    for its __init__.py)."""
+    base = package_dir.parent
+    out = {}
+    for path in sorted(package_dir.rglob("*.py")):
+        parts = list(path.relative_to(base).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
+    """The modules of `known` that `name` (at `path`) imports anywhere in its source, and every other top-level
+    package it imports (as its bare name, e.g. "torch")."""
+    tree = ast.parse(path.read_text(), str(path))
+    is_package = path.name == "__init__.py"
+    package = name if is_package else name.rpartition(".")[0]
+    found: set[str] = set()
+
+    def add(target: str) -> None:
+        if target in DATA_PACKAGES:
+            return
+        if target in known:
+            found.add(target)
+            return
+        parent = target.rpartition(".")[0]
+        if parent in known:
+            found.add(parent)
+        elif target.split(".")[0] not in {k.split(".")[0] for k in known}:
+            found.add(target.split(".")[0])
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                add(alias.name)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                anchor = package.split(".")
+                anchor = anchor[:len(anchor) - (node.level - 1)]
+                module = ".".join(anchor + ([node.module] if node.module else []))
+            else:
+                module = node.module
+            for alias in node.names:  # `from pkg import submodule` imports the submodule
+                if f"{module}.{alias.name}" in known:
+                    found.add(f"{module}.{alias.name}")
+                else:
+                    add(module)
+    found.discard(name)
+    return found
+
+
+def import_graph(package_dir: Path) -> dict[str, set[str]]:
+    files = module_files(package_dir)
+    return {name: imports_of(name, path, set(files)) for name, path in files.items()}
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan), each sorted; [] when acyclic."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in graph:
+                continue
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def unit(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def layer_violations(graph: dict[str, set[str]]) -> list[str]:
+    """Imports that run up a layer, of a unit no layer names, or from one trainer into another."""
+    bad = []
+    for src, targets in sorted(graph.items()):
+        for dst in sorted(t for t in targets if t.startswith("posttrain")):
+            us, ud = unit(src), unit(dst)
+            if us not in LAYER_OF or ud not in LAYER_OF:
+                bad.append(f"{src} -> {dst}: module {us if us not in LAYER_OF else ud!r} is in no layer "
+                           "(add it to LAYERS in tests/test_layers.py and ARCHITECTURE.md)")
+            elif LAYER_OF[ud] > LAYER_OF[us]:
+                bad.append(f"{src} (layer {LAYER_OF[us]}: {us}) imports {dst} (layer {LAYER_OF[ud]}: {ud}), "
+                           "which is above it")
+            elif us == ud == "trainers" and src != "posttrain.trainers" and dst != "posttrain.trainers":
+                bad.append(f"{src} imports another trainer, {dst}: move what they share into a shared module")
+    return bad
+
+
+def test_posttrain_layers_and_no_cycles():
+    graph = import_graph(ROOT / "posttrain")
+    assert "posttrain.trainers.grpo" in graph and "posttrain.lean.support" in graph
+    problems = layer_violations(graph) + [f"import cycle: {' <-> '.join(c)}" for c in cycles(graph)]
+    assert not problems, "\n".join(problems)
+
+
+def test_verifiers_import_nothing_of_posttrain_or_torch_and_have_no_cycles():
+    graph = import_graph(ROOT / "verifiers")
+    bad = [f"{m} imports {t}" for m, ts in sorted(graph.items()) for t in sorted(ts)
+           if t.split(".")[0] in ("posttrain", "torch")]
+    bad += [f"import cycle: {' <-> '.join(c)}" for c in cycles(graph)]
+    assert not bad, "\n".join(bad)
+
+
+# ------------------------------------------------------------------ the checker itself
+def _package(tmp_path: Path, files: dict[str, str]) -> Path:
+    root = tmp_path / "posttrain"
+    for rel, text in files.items():
+        p = root / rel
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(text)
+    return root
+
+
+def test_checker_reports_a_cycle_an_upward_import_and_trainer_to_trainer(tmp_path):
+    root = _package(tmp_path, {
+        "__init__.py": "",
+        "models.py": "from posttrain import chat\n",
+        "chat.py": "def f():\n    from posttrain.models import x\n",  # lazy import: still a cycle
+        "config.py": "from posttrain.loop import setup\n",  # config (1) -> loop (5): upward
+        "loop.py": "",
+        "rollout/__init__.py": "from .engine import generate\n",
+        "rollout/engine.py": "from ..models import unwrap_model\nimport torch\n",
+        "trainers/__init__.py": "",
+        "trainers/ppo.py": "from posttrain.trainers.reward import load\n",
+        "trainers/reward.py": "",
+    })
+    graph = import_graph(root)
+    assert graph["posttrain.rollout"] == {"posttrain.rollout.engine"}
+    assert graph["posttrain.rollout.engine"] == {"posttrain.models", "torch"}
+    assert cycles(graph) == [["posttrain.chat", "posttrain.models"]]
+    bad = layer_violations(graph)
+    assert any("posttrain.config" in b and "above it" in b for b in bad)
+    assert any("another trainer" in b for b in bad)
+    assert len(bad) == 2
+
+
+@pytest.mark.parametrize("stmt, expected", [
+    ("from . import records\n", {"posttrain.rollout.records"}),
+    ("from .records import Rollout\n", {"posttrain.rollout.records"}),
+    ("from .. import models\n", {"posttrain.models"}),
+    ("import posttrain.rollout.records as r\n", {"posttrain.rollout.records"}),
+    ("from posttrain import rollout\n", {"posttrain.rollout"}),
+])
+def test_checker_resolves_relative_and_submodule_imports(tmp_path, stmt, expected):
+    root = _package(tmp_path, {"__init__.py": "", "models.py": "", "rollout/__init__.py": "",
+                               "rollout/records.py": "", "rollout/engine.py": stmt})
+    assert import_graph(root)["posttrain.rollout.engine"] == expected
