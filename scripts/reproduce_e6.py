@@ -13,16 +13,15 @@ DPO 80 steps x 32 pairs = 5,120 sequences (+ 8 online regenerations of 160 x 8 s
 iterations x 64 rollouts x 2 epochs x 2 models = 5,120 sequences (+ 20 x 64 samples). Measured wall
 times are reported next to the results.
 
-CPU:  python scripts/reproduce_e6.py --quick      tiny preset (~1.2M parameters): measured 11.8 and 14.9 min
-                                                   single-threaded (--threads 1) on the 2-core machine shared
-                                                   with other jobs (load average 3-6; ~9.7 min of CPU time)
-      python scripts/reproduce_e6.py              small preset (~11M parameters, the seed's 10M+): measured 58.4
-                                                   min with --threads 1 on the 2-core machine while another
-                                                   1-thread job ran (SFT+pairs+RM 19 min, DPO 6-7 min and PPO
-                                                   6-8 min per seed); both claims held (see the README)
+CPU:  python scripts/reproduce_e6.py --quick      tiny preset (~1.2M parameters): roughly 10 min single-threaded
+                                                   (--threads 1) on 2 CPU cores
+      python scripts/reproduce_e6.py              small preset (~11M parameters, the seed's 10M+): about an hour
+                                                   with --threads 1 on 2 CPU cores
       python scripts/reproduce_e6.py --estimate   times a few steps of every stage on `small`, prints the estimate
-Multi-GPU: SFT, RM and DPO accept `accelerate launch`, PPO runs in one process; this script runs every stage as
-           one process, one after the other.
+      Measured runtimes and results, with their machine and commit: RESULTS.md (E6).
+Multi-GPU: every stage accepts `accelerate launch`, PPO too (it shards rollouts by prompt and gathers them; see
+           "Several processes" in posttrain/trainers/ppo.py); this script runs every stage as one process, one
+           after the other.
 Options: --out DIR (default runs/e6 or runs/e6-quick), --seeds 0 1 2, --threads N (torch threads per run;
          0 = torch's default), --fresh (redo runs whose results exist; by default finished runs are reused).
 """

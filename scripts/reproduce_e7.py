@@ -21,10 +21,10 @@ Pipeline, through the public CLI and API only:
      against inference samples and tokens per problem.
   5. Report under --out: report.md, PNG plots, e7.json (the data of every figure and table).
 
-CPU:  python scripts/reproduce_e7.py            the shipped recipe; measured 14.9 min with --threads 1 on the 2-core
-                                                machine (SFT 9.2, GRPO 4.9 min): SFT greedy 60.0% -> GRPO 89.5%
+CPU:  python scripts/reproduce_e7.py            the shipped recipe; about 15 min with --threads 1 on 2 CPU cores
       python scripts/reproduce_e7.py --quick    a smoke run of the same pipeline (short SFT and GRPO, 40
                                                 held-out problems); a few minutes
+      Measured runtimes and results, with their machine and commit: RESULTS.md (E7).
 Multi-GPU: each stage accepts `accelerate launch`; this script runs them one process at a time.
 Options: --out DIR (default runs/e7 or runs/e7-quick), --threads N (torch threads per stage and for the
          evaluation here; 0 = torch's default), --eval-rows N, --fresh (redo everything; by default a
