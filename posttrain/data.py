@@ -49,7 +49,9 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator, Literal, Sequence
 
 import datasets
+import torch
 
+from posttrain.chat import encode_prompts
 from posttrain.errors import DataError  # noqa: F401  (raised here; importable from here as before)
 
 Schema = Literal["sft", "preference", "verifiable"]
@@ -352,3 +354,35 @@ def clean_preference_rows(
     if isinstance(rows, datasets.Dataset):
         return (rows.select(keep) if n_skipped else rows), n_skipped
     return [rows[i] for i in keep], n_skipped
+
+
+# ----------------------------------------------------------------------------- SFT rows as tokens
+def tokenize_completions(rows: list[dict], tokenizer, max_length: int) -> tuple[list[tuple[list[int], list[int]]], int]:
+    """SFT rows {"prompt", "completion"} -> [(prompt_ids, completion_ids + eos)] and the number of rows dropped
+    because prompt + completion exceeds `max_length`."""
+    # Prompts rendered (chat template) and tokenized exactly as the rollout engine does (posttrain.chat).
+    prompts = encode_prompts(tokenizer, [r["prompt"] for r in rows])
+    comps = tokenizer([r["completion"] for r in rows], add_special_tokens=False)["input_ids"]
+    out, dropped = [], 0
+    for p, c in zip(prompts, comps):
+        c = c + [tokenizer.eos_token_id]
+        if len(p) + len(c) > max_length:
+            dropped += 1
+            continue
+        out.append((p, c))
+    return out, dropped
+
+
+def collate_completions(pairs: list[tuple[list[int], list[int]]], pad_id: int) -> dict[str, torch.Tensor]:
+    """Right-padded batch of `tokenize_completions` pairs: input_ids, attention_mask, completion_mask, all (B, T)."""
+    T = max(len(p) + len(c) for p, c in pairs)
+    B = len(pairs)
+    input_ids = torch.full((B, T), pad_id, dtype=torch.long)
+    attention_mask = torch.zeros((B, T), dtype=torch.long)
+    completion_mask = torch.zeros((B, T), dtype=torch.bool)
+    for i, (p, c) in enumerate(pairs):
+        n = len(p) + len(c)
+        input_ids[i, :n] = torch.tensor(p + c)
+        attention_mask[i, :n] = 1
+        completion_mask[i, len(p):n] = True
+    return {"input_ids": input_ids, "attention_mask": attention_mask, "completion_mask": completion_mask}

@@ -239,3 +239,22 @@ def masked_whiten(x: torch.Tensor, mask: torch.Tensor, shift_mean: bool = True, 
     mean, var = masked_mean(x, mask), masked_var(x, mask)
     whitened = (x - mean) * torch.rsqrt(var + eps)
     return whitened if shift_mean else whitened + mean
+
+
+# ------------------------------------------------------------------ SFT's weighted NLL
+def token_weights(batch: dict[str, torch.Tensor], prompt_loss_weight: float) -> torch.Tensor:
+    """(B, T) loss weight per token: 1 on completion tokens, `prompt_loss_weight` on prompt tokens after the first."""
+    weights = batch["completion_mask"].float()
+    if prompt_loss_weight > 0:
+        prompt = batch["attention_mask"].bool() & ~batch["completion_mask"]
+        prompt[:, 0] = False  # the first token has nothing to be predicted from
+        weights = weights + prompt_loss_weight * prompt.float()
+    return weights
+
+
+def nll_sum(model, batch: dict[str, torch.Tensor], prompt_loss_weight: float = 0.0) -> tuple[torch.Tensor, float]:
+    """SFT's loss: the `token_weights`-weighted summed negative log-likelihood of a batch (input_ids, attention_mask,
+    completion_mask), and the total weight (= completion tokens when the prompt weight is 0); differentiable."""
+    weights = token_weights(batch, prompt_loss_weight)  # (B, T)
+    logps, _ = sequence_logprobs(model, batch["input_ids"], batch["attention_mask"], weights > 0)
+    return -(logps * weights).sum(), float(weights.sum())

@@ -7,9 +7,8 @@ saved with `save_pretrained` and load back with `AutoModelForCausalLM` / `AutoTo
 
 CPU runs use fp32 weights. `model.dtype` (float32 | bfloat16 | float16) sets the weights dtype of every
 model a stage loads with `load_model`; the half dtypes are refused without a GPU (`dtype_problem`): they
-train without an fp32 master copy, and many CPUs have no bf16 matmul units. (This machine does: its AMX
-units ran a 1024^3 bf16 matmul at 877 GFLOP/s against 150 fp32 on one thread, and bf16 autocast made a
-`small` training step 1.85x faster; fp16 ran at fp32 speed.) With bfloat16 the trained weights and the optimizer run
+train without an fp32 master copy, and many CPUs have no bf16 matmul units (where a CPU has them, bf16
+autocast over fp32 weights is the fast path; RESULTS.md). With bfloat16 the trained weights and the optimizer run
 in bf16 (no fp32 master copy); for fp32 weights with bf16 compute keep float32 and launch with
 `accelerate launch --mixed_precision bf16`. Reward-model scoring (`posttrain.scoring`) stays fp32.
 

@@ -464,7 +464,7 @@ def train(res, ensure) -> Path:
                                            eval_fraction=cfg.eval_fraction, seed=cfg.seed)
         stats: dict[str, Any] = {"source": "file", "train_file": cfg.train_file, "eval_file": cfg.eval_file}
         accelerator = loop.setup(cfg.seed, res.run.threads)
-        say = print if accelerator.is_main_process else (lambda *a, **k: None)
+        say = loop.main_printer(accelerator)
         say(f"[prefs] {len(train_rows)} training and {len(eval_rows)} held-out pairs from {cfg.train_file}")
     else:
         prompts = tasks.load_split(res.task, "train")[: cfg.n_prompts]
@@ -472,7 +472,7 @@ def train(res, ensure) -> Path:
         labeler = gold_labeler(res.task.name)  # before any model loads: a task without gold fails here
         sft_dir = ensure("sft")
         accelerator = loop.setup(cfg.seed, res.run.threads)
-        say = print if accelerator.is_main_process else (lambda *a, **k: None)
+        say = loop.main_printer(accelerator)
         tokenizer = load_tokenizer(sft_dir, res.model)
         model = load_model(sft_dir, res.model.dtype, device=accelerator.device)
         say(f"[prefs] sampling {cfg.samples_per_prompt} completions for {len(prompts)} training and "

@@ -110,6 +110,17 @@ def left_pad(seqs: Sequence[Sequence[int]], pad_id: int) -> tuple[torch.Tensor, 
     return input_ids, attention_mask
 
 
+def pair_rewards(model, pairs, pad_id: int) -> torch.Tensor:
+    """(2B,) rewards of `preferences.TokenizedPair`s (prompt + chosen, prompt + rejected): chosen rows first, then
+    rejected, in ONE forward over left-padded rows (the reward model's Bradley-Terry step; differentiable)."""
+    from posttrain.models import model_device
+
+    seqs = [p.prompt + p.chosen for p in pairs] + [p.prompt + p.rejected for p in pairs]
+    input_ids, attention_mask = left_pad(seqs, pad_id)  # (2B, T), (2B, T)
+    dev = model_device(model)
+    return reward_forward(model, input_ids.to(dev), attention_mask.to(dev))  # (2B,)
+
+
 def load_reward_model(model_dir: str | Path, device: str | torch.device = "cpu"):
     """(model, tokenizer) of a reward-model directory, pad id set in the model config."""
     from transformers import AutoModelForSequenceClassification

@@ -5,14 +5,14 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             random-init preset, prompts (16-48 tokens, mixed), settings (sampling at temperature 1, no
             top-k / top-p) and seed; both produce exactly max_new_tokens per row (`min_new_tokens` for
             generate, `ignore_eos=True` for the engine). Warm-up excluded, runs alternate, medians.
-  sft       our SFT step (trainers/sft.py's tokenize_sft / collate / sft_loss_sum with loop.optimizer_step)
+  sft       our SFT step (data.tokenize_completions / collate_completions, logprobs.nll_sum, loop.optimizer_step)
             against TRL's SFTTrainer on the same tiny model and tiny-summarize rows, given to TRL as our own
             token ids (input_ids + completion_mask, so both see identical tokens), batch 16, lr 1e-4
             constant, clipping 1.0, max length 256, completion-only loss, same batch order (TRL's sampler
             "sequential"), no packing / padding-free on either side; tokens/s (non-pad tokens) and ratio.
-  rm        our reward-model step (trainers/reward.py's pair_rewards + losses.bradley_terry_loss) against
+  rm        our reward-model step (scoring.pair_rewards + losses.bradley_terry_loss) against
             TRL's RewardTrainer on the same tiny reward model (the tiny LM under a seeded one-output head,
-            `load_reward_init`), the same pairs as our token ids (chosen_ids / rejected_ids), batch 16, lr
+            `models.load_reward_init`), the same pairs as our token ids (chosen_ids / rejected_ids), batch 16, lr
             1e-4 constant, same order; chosen and rejected in one forward on both sides; pairs/s and ratio.
   dpo       our DPO training loop (trainers/dpo.py's pair_logps / pair_loss / reference_logps with
             loop.optimizer_step) against TRL's DPOTrainer on the same tiny model, tiny-summarize pairs,
@@ -416,12 +416,13 @@ def _sft_setup(args) -> SimpleNamespace:
     """Our SFT step and TRL's SFTTrainer over the same S*B tiny-summarize rows (see the module docstring)."""
     from posttrain import loop
     from posttrain.tasks import get_task
-    from posttrain.trainers.sft import collate, sft_loss_sum, tokenize_sft
+    from posttrain.data import collate_completions, tokenize_completions
+    from posttrain.logprobs import nll_sum
 
     B, S, lr, max_len = 16, 6 if args.quick else 16, 1e-4, 256
     tok = _summarize_tokenizer()
     rows = get_task("tiny-summarize").make_examples(S * B, 0, "train")
-    pairs, dropped = tokenize_sft(rows, tok, max_len)
+    pairs, dropped = tokenize_completions(rows, tok, max_len)
     assert not dropped and len(pairs) == S * B
     tokens = sum(len(p) + len(c) for p, c in pairs)  # non-pad tokens through the model
     loss_tokens = sum(len(c) for _, c in pairs)  # completion tokens (eos included): the loss's tokens
@@ -435,11 +436,11 @@ def _sft_setup(args) -> SimpleNamespace:
         optimizer = loop.build_optimizer(model, lr)
         scheduler = loop.build_scheduler(optimizer, 0, S, "constant")
         for step in range(S):
-            batch = collate(pairs[step * B:(step + 1) * B], pad)
+            batch = collate_completions(pairs[step * B:(step + 1) * B], pad)
             n = float(batch["completion_mask"].sum())
 
             def loss_fn(mb):
-                s, _ = sft_loss_sum(model, mb)
+                s, _ = nll_sum(model, mb)
                 return s / n, {}
 
             loop.optimizer_step(accelerator, model, optimizer, scheduler, [batch], loss_fn, 1.0, step + 1)
@@ -507,7 +508,8 @@ def _rm_setup(args) -> SimpleNamespace:
     from posttrain.models import save_model
     from posttrain.preferences import check_pairs
     from posttrain.scoring import rm_appends_eos
-    from posttrain.trainers.reward import load_reward_init, pair_rewards
+    from posttrain.models import load_reward_init
+    from posttrain.scoring import pair_rewards
 
     B, S, lr, max_len = 16, 6 if args.quick else 16, 1e-4, 256
     tok = _summarize_tokenizer()
@@ -737,8 +739,7 @@ def _ppo_setup(args) -> SimpleNamespace:
     """
     import posttrain.trainers.ppo as ppo_mod
     from posttrain.cli import main as posttrain_main
-    from posttrain.models import save_model
-    from posttrain.trainers.reward import load_reward_init
+    from posttrain.models import load_reward_init, save_model
 
     iters = 4 if args.quick else 8
     rollout, minibatch, epochs = (16 if args.quick else 32), 8, 2
@@ -858,8 +859,9 @@ def _grpo_setup(args) -> SimpleNamespace:
     generation happens inside the step). The first 2 steps of every run are warm-up and excluded; runs
     alternate; medians over all remaining steps.
     """
-    import posttrain.trainers.grpo  # noqa: F401  (imported before any memory baseline, as the CLI would)
-    from posttrain.cli import main as posttrain_main
+    from posttrain.cli import STAGES, main as posttrain_main
+
+    STAGES["grpo"].load()  # the trainer imported before any memory baseline, as the CLI would
     from posttrain.models import save_model
     from verifiers.format import LengthVerifier
 

@@ -14,9 +14,9 @@ Example (JSON-serialisable):
      "answer": {"family": "countdown", "numbers": [7, 46, 10], "target": 36, ...},   # verifier reference
      "meta": {"task": "tiny-countdown", "reference": {...same...}, "gold": "46 - 10"}}
 
-Choices (measured: a 1M-parameter model SFT'd for 300 steps on the generator's full difficulty-1
-problems, three numbers and golds of two operations written out one operation per line, solved 0
-of 512 samples, so RL had nothing to reinforce):
+Choices (a tiny model SFT'd on the verifier generator's full difficulty-1 problems, golds of two
+operations written out one per line, solved none of its samples, so RL had nothing to reinforce;
+RESULTS.md, "Recipes / tiny-countdown"):
 - Three numbers, a target made from exactly TWO of them with one operation (+, -, *, / with an
   exact integer result; operator drawn uniformly, the problem redrawn unless the target is in
   10..100 and not itself one of the numbers): the third number is a distractor. A solution is a choice
@@ -28,9 +28,9 @@ of 512 samples, so RL had nothing to reinforce):
   format verifiers read); no arithmetic is written out, the verifier does it.
 - Splits: a SHA-1 of the problem (sorted numbers, target) sends about 20% of problems to "eval" and
   the rest to "train", both drawn from the same number distribution (1..50, 60% of them 1..10): the
-  held-out set tests new problems, not new number ranges. (Measured: with the verifier generator's
-  split, held-out problems always holding a number in 51..100, the SFT model above solved 2.5% of
-  them greedily against 11% of training problems, leaving RL little to show on held-out data.)
+  held-out set tests new problems, not new number ranges. (With the verifier generator's split,
+  held-out problems always holding a number in 51..100, the SFT model solved far fewer of them than
+  of the training problems, leaving RL little to show on held-out data.)
   The reference is the countdown verifier's ({"family", "numbers", "target"}).
 - `make_examples(n, seed, split)` is deterministic, and a prefix of a longer call (one seeded
   stream; duplicates, same numbers and target, are skipped).

@@ -53,21 +53,18 @@ working, " The answer is 66.", with probability DIRECT_PROB = 0.8; every other t
 worked, and held-out references are always worked. The SFT model imitates that: greedy, it
 states a guessed answer to that question (almost always wrong: a tiny model cannot add three
 numbers in one token) and works every other question in columns. At temperature 1 it still
-works the direct-style question about 20% of the time, so a group of 8 samples usually holds
+works the direct-style question some of the time, so a group of 8 samples usually holds
 a worked, right answer next to direct, wrong ones: RL has a clear signal to learn to work
 every problem, and the response length grows (the E7 question: does RL make answers longer?).
 
-Why not simply stop SFT early on all-worked data (measured, held-out greedy accuracy on 200
-problems, 1 thread): batch 16, cosine, 300 / 450 / 550 / 650 / 800 steps gave 0.5% / 26% / 6% /
-79.5% / 84.5% -- the model learns to copy the equation line abruptly, at a step that moves with
-the schedule and the data order, so no step count promises partial accuracy. And GRPO from
-such a model mostly has to sharpen digit predictions one noisy sample at a time: from 54.5%
-(batch 32 x 400 steps) it reached 59-63% in 30-50 steps (lr 5e-5, 32 prompts per step, dynamic
-sampling), and it collapsed at lr >= 1e-4. With the two styles the SFT model is past that
-transition (its worked answers are ~90% right) and the room for RL is the style choice on one
-question in three (measured: 59% -> 91% in 20 GRPO steps; numbers in recipes/tiny-math.yaml). The SFT
-stage is therefore trained to convergence (2000 steps): stopping it early only adds the luck of the
-transition above (1100 steps gave 61.5% with one torch thread and 18% with two).
+Why not simply stop SFT early on all-worked data: the model learns to copy the equation line
+abruptly, at a step that moves with the schedule and the data order, so no step count promises
+partial accuracy; and GRPO from such a model mostly has to sharpen digit predictions one noisy
+sample at a time (it gained little and collapsed at lr >= 1e-4). With the two styles the SFT model
+is past that transition (its worked answers are mostly right) and the room for RL is the style
+choice on one question in three. The SFT stage is therefore trained to convergence (2000 steps):
+stopping it early only adds the luck of the transition above, which moved with the torch thread
+count. The measurements behind each choice: RESULTS.md, "Recipes / tiny-math".
 
 Verification steps. With probability CHECK_PROB a worked training solution adds, before the answer,
 the inverse of its last operation: "Check: 66+19=85" (for a gain, "Check: 85-38=47"). It only
@@ -84,11 +81,11 @@ Splits (train and held-out differ)
   training; only the combination is new.
 - Eval solutions are always worked and never contain a Check line (DIRECT_PROB and CHECK_PROB
   are train-only).
-Why no new words in the held-out set: measured on an SFT model (train greedy accuracy 63%),
-held-out problems with unseen names and items scored 1%, an unseen opener ("After that,")
-10%, an unseen question 45% -- the untrained embeddings of new words break the copying of the
-numbers. That tests vocabulary coverage of a model trained from scratch, not arithmetic, and RL
-on training prompts could not fix it; held-out numbers alone scored 67%, like training problems.
+Why no new words in the held-out set: on an SFT model, held-out problems with unseen names and
+items, an unseen opener or an unseen question scored far below training problems (RESULTS.md) --
+the untrained embeddings of new words break the copying of the numbers. That tests vocabulary
+coverage of a model trained from scratch, not arithmetic, and RL on training prompts could not fix
+it; held-out numbers alone scored like training problems.
 
 Rows: {"prompt", "completion" (the SFT target, starts with a space), "answer" (the gold number
 as text, the verifier reference), "verifier": "math", "meta"}. `meta` keys: task, answer,

@@ -34,10 +34,10 @@ from typing import Literal
 import torch
 
 from posttrain import loop
-from posttrain.config import Resolved, save_resolved
+from posttrain.config import Resolved
 from posttrain.losses import bradley_terry_loss
 from posttrain.preferences import TokenizedPair
-from posttrain.scoring import left_pad, reward_forward, rm_appends_eos
+from posttrain.scoring import pair_rewards, rm_appends_eos
 
 
 @dataclass
@@ -80,16 +80,6 @@ class RMConfig:
     """Seed of the head's init and the data order."""
     resume: bool = False
     """Continue from the newest checkpoint in the run directory."""
-
-
-def pair_rewards(model, pairs: list[TokenizedPair], pad_id: int) -> torch.Tensor:
-    """(2B,) rewards: chosen rows first, then rejected, in ONE forward over left-padded rows."""
-    from posttrain.models import model_device
-
-    seqs = [p.prompt + p.chosen for p in pairs] + [p.prompt + p.rejected for p in pairs]
-    input_ids, attention_mask = left_pad(seqs, pad_id)  # (2B, T), (2B, T)
-    dev = model_device(model)
-    return reward_forward(model, input_ids.to(dev), attention_mask.to(dev))  # (2B,)
 
 
 @torch.no_grad()
@@ -138,13 +128,8 @@ def train(res: Resolved, ensure) -> Path:
         raise loop.TrainingError(f"only {len(train_pairs)} usable preference pairs in {source}, fewer than "
                                  f"batch_size={cfg.batch_size}")
 
-    accelerator = loop.setup(cfg.seed, res.run.threads)
+    accelerator, say = loop.start_run(res, cfg.seed, cfg.resume)
     main = accelerator.is_main_process
-    say = print if main else (lambda *a, **k: None)
-    if main:
-        loop.prepare_run_dir(run_dir, cfg.resume, say)
-        save_resolved(res, run_dir / "config.yaml")
-    accelerator.wait_for_everyone()
 
     # LoRA: adapters on the transformer, the new score head trained fully (peft's SEQ_CLS modules_to_save)
     model = maybe_lora(res, load_reward_init(sft_dir, pad_id, cfg.seed, accelerator.device, res.model.dtype), say,
@@ -157,15 +142,7 @@ def train(res: Resolved, ensure) -> Path:
     ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
     metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, main, res.run.quiet, prefix="[rm] ")
 
-    start = 0
-    if cfg.resume:
-        last = ckpt.latest()
-        if last is None:
-            say(f"[rm] resume=true but no checkpoint in {ckpt.dir}; starting from step 0")
-        else:
-            start = ckpt.load(last, model, optimizer, scheduler)["step"]
-            metrics.truncate_after(start)
-            say(f"[rm] resumed from {last} at step {start}")
+    start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="rm")["step"]
 
     say(f"[rm] {len(train_pairs)} training pairs from {source}, {len(eval_pairs)} held-out, batch {cfg.batch_size} "
         f"(micro {micro}), {cfg.max_steps} steps, lr {cfg.lr}")
@@ -182,14 +159,11 @@ def train(res: Resolved, ensure) -> Path:
             return loss * (len(chunk) / len(idx)), m
 
         saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
-        try:
+        with loop.naming_checkpoint(ckpt):
             m = loop.optimizer_step(accelerator, model, optimizer, scheduler, micro_batches, loss_fn,
                                     cfg.max_grad_norm, done)
-            if saving and not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
-                raise loop.TrainingError(f"non-finite weights after step {done}; stopping without saving them")
-        except loop.TrainingError as e:
-            last = ckpt.latest()
-            raise loop.TrainingError(f"{e} ({f'last good checkpoint: {last}' if last else 'no checkpoint yet'})") from None
+            if saving:
+                loop.check_weights(done, model)
         if done % cfg.log_every == 0 or done == cfg.max_steps:
             metrics.log(done, m)
         if done == cfg.max_steps or (cfg.eval_every and done % cfg.eval_every == 0):

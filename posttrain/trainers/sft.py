@@ -35,9 +35,9 @@ from typing import Literal
 import torch
 
 from posttrain import loop
-from posttrain.chat import encode_prompts
-from posttrain.config import Resolved, save_resolved
-from posttrain.logprobs import sequence_logprobs
+from posttrain.config import Resolved
+from posttrain.data import collate_completions, tokenize_completions
+from posttrain.logprobs import nll_sum, token_weights
 
 
 @dataclass
@@ -84,60 +84,12 @@ class SFTConfig:
     """Continue from the newest checkpoint in the run directory."""
 
 
-# ----------------------------------------------------------------------------- data
-def tokenize_sft(rows: list[dict], tokenizer, max_length: int) -> tuple[list[tuple[list[int], list[int]]], int]:
-    """[(prompt_ids, completion_ids + eos)] and the number of rows dropped for length."""
-    # Prompts rendered (chat template) and tokenized exactly as the rollout engine does (posttrain.chat).
-    prompts = encode_prompts(tokenizer, [r["prompt"] for r in rows])
-    comps = tokenizer([r["completion"] for r in rows], add_special_tokens=False)["input_ids"]
-    out, dropped = [], 0
-    for p, c in zip(prompts, comps):
-        c = c + [tokenizer.eos_token_id]
-        if len(p) + len(c) > max_length:
-            dropped += 1
-            continue
-        out.append((p, c))
-    return out, dropped
-
-
-def collate(pairs: list[tuple[list[int], list[int]]], pad_id: int) -> dict[str, torch.Tensor]:
-    """Right-padded batch: input_ids, attention_mask, completion_mask, all (B, T)."""
-    T = max(len(p) + len(c) for p, c in pairs)
-    B = len(pairs)
-    input_ids = torch.full((B, T), pad_id, dtype=torch.long)
-    attention_mask = torch.zeros((B, T), dtype=torch.long)
-    completion_mask = torch.zeros((B, T), dtype=torch.bool)
-    for i, (p, c) in enumerate(pairs):
-        n = len(p) + len(c)
-        input_ids[i, :n] = torch.tensor(p + c)
-        attention_mask[i, :n] = 1
-        completion_mask[i, len(p):n] = True
-    return {"input_ids": input_ids, "attention_mask": attention_mask, "completion_mask": completion_mask}
-
-
-def token_weights(batch: dict[str, torch.Tensor], prompt_loss_weight: float) -> torch.Tensor:
-    """(B, T) loss weight per token: 1 on completion tokens, `prompt_loss_weight` on prompt tokens after the first."""
-    weights = batch["completion_mask"].float()
-    if prompt_loss_weight > 0:
-        prompt = batch["attention_mask"].bool() & ~batch["completion_mask"]
-        prompt[:, 0] = False  # the first token has nothing to be predicted from
-        weights = weights + prompt_loss_weight * prompt.float()
-    return weights
-
-
-def sft_loss_sum(model, batch: dict[str, torch.Tensor], prompt_loss_weight: float = 0.0) -> tuple[torch.Tensor, float]:
-    """Weighted summed negative log-likelihood and the total weight (= completion tokens when the prompt weight is 0)."""
-    weights = token_weights(batch, prompt_loss_weight)  # (B, T)
-    logps, _ = sequence_logprobs(model, batch["input_ids"], batch["attention_mask"], weights > 0)
-    return -(logps * weights).sum(), float(weights.sum())
-
-
 @torch.no_grad()
 def eval_loss(model, pairs, pad_id: int, micro_batch_size: int) -> float:
     model.eval()
     total, count = 0.0, 0
     for chunk in loop.chunks(pairs, micro_batch_size):
-        s, n = sft_loss_sum(model, collate(chunk, pad_id))
+        s, n = nll_sum(model, collate_completions(chunk, pad_id))
         total += float(s)
         count += n
     return total / max(1, count)
@@ -157,17 +109,12 @@ def train(res: Resolved, ensure) -> Path:
     eval_rows = tasks.load_split(res.task, "eval")
     base_dir = ensure("base")
 
-    accelerator = loop.setup(cfg.seed, res.run.threads)
-    say = print if accelerator.is_main_process else (lambda *a, **k: None)
-    if accelerator.is_main_process:
-        loop.prepare_run_dir(run_dir, cfg.resume, say)
-        save_resolved(res, run_dir / "config.yaml")
-    accelerator.wait_for_everyone()
+    accelerator, say = loop.start_run(res, cfg.seed, cfg.resume)
 
     tokenizer = load_tokenizer(base_dir, res.model)
     model = maybe_lora(res, load_model(base_dir, res.model.dtype, device=accelerator.device), say)
-    train_pairs, dropped = tokenize_sft(train_rows, tokenizer, res.model.max_length)
-    eval_pairs, _ = tokenize_sft(eval_rows[: cfg.eval_loss_rows], tokenizer, res.model.max_length)
+    train_pairs, dropped = tokenize_completions(train_rows, tokenizer, res.model.max_length)
+    eval_pairs, _ = tokenize_completions(eval_rows[: cfg.eval_loss_rows], tokenizer, res.model.max_length)
     if dropped:
         say(f"[sft] dropped {dropped}/{len(train_rows)} training rows longer than model.max_length={res.model.max_length}")
     if len(train_pairs) < cfg.batch_size:
@@ -182,15 +129,7 @@ def train(res: Resolved, ensure) -> Path:
     metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, accelerator.is_main_process,
                               res.run.quiet, prefix="[sft] ")
 
-    start = 0
-    if cfg.resume:
-        last = ckpt.latest()
-        if last is None:
-            say(f"[sft] resume=true but no checkpoint in {ckpt.dir}; starting from step 0")
-        else:
-            start = ckpt.load(last, model, optimizer, scheduler)["step"]
-            metrics.truncate_after(start)
-            say(f"[sft] resumed from {last} at step {start}")
+    start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="sft")["step"]
 
     say(f"[sft] {len(train_pairs)} training rows, batch {cfg.batch_size} (micro {micro}), {cfg.max_steps} steps, "
         f"lr {cfg.lr}, {accelerator.num_processes} process(es) on {accelerator.device}")
@@ -199,14 +138,14 @@ def train(res: Resolved, ensure) -> Path:
         idx = loop.batch_indices(len(train_pairs), cfg.batch_size, cfg.seed, step,
                                  accelerator.process_index, accelerator.num_processes)[:per_process]
         batch_pairs = [train_pairs[i] for i in idx]
-        micro_batches = [collate(c, tokenizer.pad_token_id) for c in loop.chunks(batch_pairs, micro)]
+        micro_batches = [collate_completions(c, tokenizer.pad_token_id) for c in loop.chunks(batch_pairs, micro)]
         n_tokens = sum(float(token_weights(mb, cfg.prompt_loss_weight).sum()) for mb in micro_batches)
         # Token mean over the GLOBAL batch: DDP averages gradients over processes, so each process
         # divides its token-loss sum by the global token count times the number of processes.
         scale = accelerator.num_processes / loop.global_sum(accelerator, n_tokens)
 
         def loss_fn(mb):
-            s, _ = sft_loss_sum(model, mb, cfg.prompt_loss_weight)
+            s, _ = nll_sum(model, mb, cfg.prompt_loss_weight)
             return s * scale, {}
 
         m = loop.optimizer_step(accelerator, model, optimizer, scheduler, micro_batches, loss_fn,

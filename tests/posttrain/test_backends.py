@@ -28,14 +28,14 @@ from posttrain.rollout import vllm_backend
 HERE = Path(__file__).resolve().parent
 
 
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
+
+
 @pytest.fixture(autouse=True)
-def _restore():
-    """These tests set the process default backend and torch threads; give later tests theirs back."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _restore_backend():
+    """These tests set the process default backend; give later tests theirs back."""
     yield
     configure()
-    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")

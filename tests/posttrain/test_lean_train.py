@@ -20,12 +20,7 @@ from posttrain.logprobs import position_ids_from_mask, sequence_logprobs
 V = 97
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # correctness tests (tests/conftest.py)
 
 
 _FAMILIES = {  # class-name prefix and the family's own defaults

@@ -18,14 +18,7 @@ from posttrain.logprobs import (
 from posttrain.models import build_model, train_tokenizer
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """One intra-op thread: these are correctness tests, and a 2-thread OpenMP team crawls when the
-    machine's cores are shared with other test processes."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # correctness tests (tests/conftest.py)
 
 
 @pytest.fixture(scope="module")

@@ -12,21 +12,13 @@ from posttrain.preferences import check_pairs, collate_pairs, form_pairs, read_p
 from posttrain.tasks import summarize
 
 
-@pytest.fixture(autouse=True)
-def _keep_torch_threads():
-    """The runs here use run.threads=1 (light on shared CPUs); give later tests their thread count back."""
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tiny_lm):
     """(model, tokenizer) of a random tiny model with a tokenizer trained on the task."""
-    from posttrain.models import bootstrap
+    from posttrain.models import load_model, load_tokenizer
 
-    root = tmp_path_factory.mktemp("lm")
-    return bootstrap("tiny", summarize.corpus(200, 0), root / "lm", vocab_size=384, seed=0, max_length=160)
+    lm = tiny_lm("tiny-summarize", max_length=160)
+    return load_model(lm), load_tokenizer(lm)
 
 
 def test_form_pairs_best_vs_worst_skips_ties_and_adds_random_lower():

@@ -15,14 +15,6 @@ CHATML = ("{{ bos_token }}{% for m in messages %}<|im_start|>{{ m['role'] }}\n{{
           "{% endfor %}{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}")
 
 
-@pytest.fixture(autouse=True)
-def _keep_torch_threads():
-    """The runs here use run.threads=1 (light on shared CPUs); give later tests their thread count back."""
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
-
-
 def _rows(n: int, seed: int) -> list[dict]:
     """Always answer "ok": a tiny model learns it (and to stop after it) in a few dozen steps."""
     return [{"prompt": f"Item {seed * 1000 + i}: is it fine?", "completion": "ok"} for i in range(n)]
@@ -136,14 +128,14 @@ def test_a_system_prompt_is_written_into_the_template_once(world):
 # ----------------------------------------------------------------------------- (b) SFT, (d) generation stops
 def test_sft_on_a_model_directory_trains_on_rendered_prompts_ending_with_im_end(world, sft_run):
     from posttrain.models import load_model, load_tokenizer
-    from posttrain.trainers.sft import tokenize_sft
+    from posttrain.data import tokenize_completions
 
     losses = _losses(sft_run)
     assert len(losses) == 40 and losses[-1] < 0.2 * losses[0], losses
     final = sft_run / "tiny-summarize" / "sft" / "final"
     model, tok = load_model(final), load_tokenizer(final)
     assert type(model).__name__ == "Qwen2ForCausalLM" and tok.chat_template is not None
-    pairs, dropped = tokenize_sft(_rows(4, 2), tok, 64)
+    pairs, dropped = tokenize_completions(_rows(4, 2), tok, 64)
     assert dropped == 0
     im_end = tok.convert_tokens_to_ids("<|im_end|>")
     for (p, c), row in zip(pairs, _rows(4, 2)):

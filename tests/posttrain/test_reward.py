@@ -10,14 +10,6 @@ from posttrain.cli import main
 from posttrain.tasks import summarize
 
 
-@pytest.fixture(autouse=True)
-def _keep_torch_threads():
-    """The runs here use run.threads=1 (light on shared CPUs); give later tests their thread count back."""
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
-
-
 def _pairs(n: int, seed: int, split: str) -> list[dict]:
     """chosen: the concise summary; rejected: the same plus a filler sentence (learnable from the text alone)."""
     rows = summarize.make_examples(n, seed, split)
@@ -32,12 +24,9 @@ def _write(path: Path, rows: list[dict]) -> Path:
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    from posttrain.models import bootstrap
-
+def world(tmp_path_factory, tiny_lm):
     root = tmp_path_factory.mktemp("rm")
-    bootstrap("tiny", summarize.corpus(200, 0), root / "sft", vocab_size=384, seed=0, max_length=256)
-    return {"root": root, "sft": root / "sft", "train": _write(root / "train.jsonl", _pairs(192, 0, "train")),
+    return {"root": root, "sft": tiny_lm("tiny-summarize", max_length=256), "train": _write(root / "train.jsonl", _pairs(192, 0, "train")),
             "eval": _write(root / "eval.jsonl", _pairs(48, 0, "eval"))}
 
 

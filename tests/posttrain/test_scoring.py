@@ -44,16 +44,17 @@ class Constant:
 
 
 @pytest.fixture(scope="module")
-def tiny_rm(tmp_path_factory):
+def tiny_rm(tmp_path_factory, tiny_lm):
     """A randomly initialised one-label sequence-classification model with our tokenizer, saved as a HF dir."""
     from transformers import AutoModelForSequenceClassification
 
-    from posttrain.models import bootstrap
+    from posttrain.models import load_tokenizer
 
     root = tmp_path_factory.mktemp("rm")
-    _, tok = bootstrap("tiny", summarize.corpus(200, 0), root / "lm", vocab_size=384, seed=0, max_length=160)
+    lm = tiny_lm("tiny-summarize", max_length=160)
+    tok = load_tokenizer(lm)
     torch.manual_seed(0)
-    rm = AutoModelForSequenceClassification.from_pretrained(str(root / "lm"), num_labels=1)
+    rm = AutoModelForSequenceClassification.from_pretrained(str(lm), num_labels=1)
     rm.config.pad_token_id = tok.pad_token_id
     with torch.no_grad():
         rm.score.weight.normal_(0, 1.0)  # make rewards clearly differ between inputs

@@ -1,0 +1,63 @@
+"""Fixtures every test folder shares: torch's thread count, a tiny model built once per session, JSONL files.
+
+- `_restore_torch_threads` (automatic): runs here use run.threads=1 (light on shared CPUs) and some tests set
+  threads themselves; every test gives the next one its thread count back.
+- `one_thread` (module scope; `pytestmark = pytest.mark.usefixtures("one_thread")`): one intra-op thread for a
+  module's correctness tests (a 2-thread OpenMP team crawls when the cores are shared with other processes).
+- `tiny_lm(task, vocab_size=, max_length=, **bootstrap_options)`: the directory of a random-init `tiny` preset
+  with a tokenizer trained on the task's corpus, built once per session and settings (read-only: runs write
+  their own directories).
+- `write_jsonl(path, rows)`: rows as a JSONL file; returns the path.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+
+@pytest.fixture(autouse=True)
+def _restore_torch_threads():
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="session")
+def tiny_lm(tmp_path_factory):
+    built: dict[tuple, Path] = {}
+
+    def build(task: str = "tiny-summarize", *, vocab_size: int = 384, max_length: int = 256, **options) -> Path:
+        key = (task, vocab_size, max_length, tuple(sorted(options.items())))
+        if key not in built:
+            from posttrain import tasks
+            from posttrain.models import bootstrap
+
+            out = tmp_path_factory.mktemp("tiny-lm") / "model"
+            bootstrap("tiny", tasks.get_task(task).corpus(200, 0), out, vocab_size=vocab_size, seed=0,
+                      max_length=max_length, **options)
+            built[key] = out
+        return built[key]
+
+    return build
+
+
+def _write_jsonl(path: Path, rows: list[dict]) -> Path:
+    path = Path(path)
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return path
+
+
+@pytest.fixture(scope="session")
+def write_jsonl():
+    return _write_jsonl
