@@ -75,13 +75,16 @@ def _silent(*args, **kwargs) -> None:
     return None
 
 
-def start_run(res, seed: int, resume: bool):
-    """Start a stage's run: `setup` (seeds, threads, the Accelerator), then on the main process its run
-    directory (`prepare_run_dir`: an earlier run is kept as <dir>.prev unless resuming) and the resolved
+def start_run(res, seed: int, resume: bool, check: Callable[[Any], None] | None = None):
+    """Start a stage's run: `setup` (seeds, threads, the Accelerator), `check(accelerator)` (settings that depend on
+    the number of processes: a ConfigError there leaves every directory as it was), then on the main process its
+    run directory (`prepare_run_dir`: an earlier run is kept as <dir>.prev unless resuming) and the resolved
     config.yaml, every process waiting for that. Returns (accelerator, say)."""
     from posttrain.config import save_resolved
 
     accelerator = setup(seed, res.run.threads)
+    if check is not None:
+        check(accelerator)
     say = main_printer(accelerator)
     if accelerator.is_main_process:
         prepare_run_dir(res.stage_dir(), resume, say)
@@ -116,7 +119,7 @@ def build_optimizer(model: torch.nn.Module, lr: float, weight_decay: float = 0.0
     optimizer = torch.optim.AdamW(groups, lr=lr, betas=betas, eps=eps, fused=fused or None)
     if fused:
         # The fused kernel writes the weights without bumping their version counters, which is how the rollout
-        # engine sees that a model changed since its cached fused weights (rollout.engine._weights_signature).
+        # engine sees that a model changed since its cached fused weights (models.weights_signature).
         from torch.autograd.graph import increment_version
 
         optimizer.register_step_post_hook(lambda opt, args, kwargs: increment_version(params))
@@ -184,6 +187,8 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
             if k.endswith("_max"):
                 v = float(v) if (v == v and w != 0.0) else -math.inf
                 totals[k] = max(totals.get(k, -math.inf), v)
+            elif k.endswith("_sum"):
+                totals[k] = totals.get(k, 0.0) + (float(v) if w != 0.0 else 0.0)
             else:
                 totals[k] = totals.get(k, 0.0) + (float(v) * w if w != 0.0 else 0.0)
     grad_norm = float("nan")

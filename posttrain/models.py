@@ -32,7 +32,6 @@ from typing import Iterable
 import torch
 
 from posttrain.errors import ModelError
-from posttrain import models  # introduced on purpose
 from posttrain.runtime import DTYPES, dtype_problem
 
 PAD_TOKEN = "<|pad|>"

@@ -53,7 +53,9 @@ from typing import Any, Callable, Literal, Sequence
 
 import torch
 
+from posttrain import loop
 from posttrain.chat import encode_prompts
+from posttrain.logprobs import masked_sum, packed_logprobs, sequence_logprobs
 from posttrain.data import DataError
 
 PAIR_FIELDS = ("prompt", "chosen", "rejected")
@@ -452,7 +454,7 @@ def collate_shared_prompt(pairs: Sequence[TokenizedPair], pad_id: int) -> dict[s
 # ----------------------------------------------------------------------------- the stage
 def train(res, ensure) -> Path:
     """The prefs stage: write `final/{train,eval}.jsonl` (see the module docstring); returns final/."""
-    from posttrain import loop, tasks
+    from posttrain import tasks
     from posttrain.config import save_resolved
     from posttrain.data import save_rows
     from posttrain.models import load_model, load_tokenizer
@@ -528,3 +530,39 @@ def train(res, ensure) -> Path:
 def _key_histogram(rows: list[dict], which: str) -> dict[str, int]:
     c = Counter(json.dumps(((r.get("meta") or {}).get("pair") or {}).get(which)) for r in rows)
     return dict(c.most_common(10))
+
+
+# ----------------------------------------------------------------------------- log-probs of pairs
+def pair_logps(model, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Summed completion log-probs (2B,) and completion token counts (2B,) of a `collate_pairs` batch, chosen
+    first then rejected, in either layout (two rows per pair, or one shared-prompt row: `collate_shared_prompt`), in
+    ONE forward; differentiable under autograd (DPO's policy term, and its reference)."""
+    if "allowed" in batch:  # shared prompt: one row per pair, prompt + chosen + rejected
+        lp = packed_logprobs(model, batch["input_ids"], batch["position_ids"], batch["allowed"],
+                             batch["pred_index"], batch["targets"], batch["target_mask"])  # (B, Lc + Lr)
+        Lc = int(batch["chosen_cols"])
+        cm = batch["target_mask"].to(lp.device, lp.dtype)
+        return (torch.cat([lp[:, :Lc].sum(-1), lp[:, Lc:].sum(-1)]),
+                torch.cat([cm[:, :Lc].sum(-1), cm[:, Lc:].sum(-1)]))  # (2B,), (2B,)
+    logps, _ = sequence_logprobs(model, batch["input_ids"], batch["attention_mask"], batch["completion_mask"])  # (2B, T)
+    cm = batch["completion_mask"].to(logps.device)
+    return masked_sum(logps, cm, -1), cm.sum(-1).to(logps.dtype)  # (2B,), (2B,)
+
+
+def by_side(s: torch.Tensor, n: torch.Tensor, B: int) -> dict[str, torch.Tensor]:
+    """`pair_logps`' (2B,) sums and token counts as {"chosen", "rejected", "chosen_tokens", "rejected_tokens"} (B,)."""
+    return {"chosen": s[:B], "rejected": s[B:], "chosen_tokens": n[:B], "rejected_tokens": n[B:]}
+
+
+@torch.no_grad()
+def reference_logps(model, pairs: list[TokenizedPair], pad_id: int, micro_batch_size: int,
+                    share_prompt: bool = True) -> dict[str, torch.Tensor]:
+    """The no-grad `pair_logps` of every pair, by side: {"chosen", "rejected", "chosen_tokens", "rejected_tokens"},
+    (N,) tensors on CPU, one entry per pair (DPO's precomputed reference)."""
+    was_training = model.training
+    model.eval()
+    parts = [by_side(*pair_logps(model, collate_pairs(chunk, pad_id, share_prompt)), len(chunk))
+             for chunk in loop.chunks(pairs, micro_batch_size)]
+    model.train(was_training)
+    return {k: torch.cat([p[k].cpu() for p in parts]) if parts else torch.zeros(0)
+            for k in ("chosen", "rejected", "chosen_tokens", "rejected_tokens")}

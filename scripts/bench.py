@@ -14,7 +14,7 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             TRL's RewardTrainer on the same tiny reward model (the tiny LM under a seeded one-output head,
             `models.load_reward_init`), the same pairs as our token ids (chosen_ids / rejected_ids), batch 16, lr
             1e-4 constant, same order; chosen and rejected in one forward on both sides; pairs/s and ratio.
-  dpo       our DPO training loop (trainers/dpo.py's pair_logps / pair_loss / reference_logps with
+  dpo       our DPO training loop (preferences.pair_logps / reference_logps, losses.dpo_loss with
             loop.optimizer_step) against TRL's DPOTrainer on the same tiny model, tiny-summarize pairs,
             batch (8), lr and beta, same order; tokens/s of the same pairs, reference log-probs included.
   ppo       a PPO iteration of `posttrain ppo` (the trainer, through the CLI) on tiny-summarize with a
@@ -600,8 +600,8 @@ def _dpo_setup(args) -> SimpleNamespace:
     this CPU: fp32 (bf16=False), gradient_checkpointing=False, no logging / saving / eval, our batch order.
     """
     from posttrain import loop
-    from posttrain.preferences import check_pairs, collate_pairs
-    from posttrain.trainers.dpo import DPOConfig, pair_logps, pair_loss, reference_logps
+    from posttrain.losses import dpo_loss
+    from posttrain.preferences import check_pairs, collate_pairs, pair_logps, reference_logps
 
     B = args.dpo_batch
     S = 6 if args.quick else 16
@@ -611,7 +611,7 @@ def _dpo_setup(args) -> SimpleNamespace:
     _, pairs, _ = check_pairs(rows, "bench pairs", "error", tok, max_len)
     tokens = sum(2 * len(p.prompt) + len(p.chosen) + len(p.rejected) for p in pairs)
     base = build_model("tiny", tok, seed=0).to(args.device)
-    cfg = DPOConfig(batch_size=B, lr=1e-4, beta=0.1)
+    lr, beta = 1e-4, 0.1  # the sigmoid DPO loss (posttrain dpo's default loss_type)
     pad = tok.pad_token_id
 
     def ours() -> float:
@@ -619,7 +619,7 @@ def _dpo_setup(args) -> SimpleNamespace:
         accelerator = loop.setup(0)
         t0 = time.perf_counter()
         ref = reference_logps(model, pairs, pad, B)
-        optimizer = loop.build_optimizer(model, cfg.lr)
+        optimizer = loop.build_optimizer(model, lr)
         scheduler = loop.build_scheduler(optimizer, 0, S, "constant")
         for step in range(S):
             idx = list(range(step * B, (step + 1) * B))
@@ -627,8 +627,8 @@ def _dpo_setup(args) -> SimpleNamespace:
             r = {k: v[idx] for k, v in ref.items()}
 
             def loss_fn(mb):
-                s, n = pair_logps(model, mb)
-                return pair_loss(cfg, s, n, r)
+                s, _ = pair_logps(model, mb)  # (2B,): chosen, then rejected
+                return dpo_loss(s[:B], s[B:], r["chosen"], r["rejected"], beta=beta)
 
             loop.optimizer_step(accelerator, model, optimizer, scheduler, [batch], loss_fn, 1.0, step + 1)
         _sync(args.device)
@@ -728,16 +728,14 @@ def _trl_ppo_status() -> str | None:
 
 
 def _ppo_setup(args) -> SimpleNamespace:
-    """`posttrain ppo` through the CLI on a throwaway recipe; the scorer timed through a wrapper.
+    """`posttrain ppo` through the CLI on a throwaway recipe, its phases read from the metrics it logs.
 
     Random-init tiny policy (= SFT model) and a reward model made of the same transformer under a seeded
     one-output head (value_init=reward copies it), tiny-summarize prompts, rollout batch 16 (quick) / 32,
     minibatch 8, 2 PPO epochs, <= max_new_tokens new tokens (a random model rarely samples eos), reward
-    normalisation per batch (no initial sampling pass), no evaluation. The trainer logs time/rollout_s and
-    time/iteration_s per iteration; scoring is timed by wrapping the scorer that `ppo.reward_scorer` returns
-    (instrumentation only: the trainer's code is unchanged).
+    normalisation per batch (no initial sampling pass), no evaluation. The trainer logs time/rollout_s,
+    time/score_s and time/iteration_s per iteration; the update is the rest of the iteration.
     """
-    import posttrain.trainers.ppo as ppo_mod
     from posttrain.cli import main as posttrain_main
     from posttrain.models import load_reward_init, save_model
 
@@ -770,36 +768,16 @@ ppo:
 """)
 
     def ours() -> list[dict[str, float]]:
-        score_times: list[float] = []
-        original = ppo_mod.reward_scorer
-
-        def timed_reward_scorer(*a, **k):
-            scorer = original(*a, **k)
-            inner = scorer.score
-
-            def score(*a2, **k2):
-                t0 = time.perf_counter()
-                out = inner(*a2, **k2)
-                score_times.append(time.perf_counter() - t0)
-                return out
-
-            scorer.score = score
-            return scorer
-
-        ppo_mod.reward_scorer = timed_reward_scorer
-        try:
-            with contextlib.redirect_stdout(io.StringIO()):
-                rc = posttrain_main(["ppo", "--recipe", str(recipe), f"run.output_dir={root / 'runs'}",
-                                     f"run.threads={args.threads}", "run.quiet=true", f"max_steps={iters}"])
-        finally:
-            ppo_mod.reward_scorer = original
+        with contextlib.redirect_stdout(io.StringIO()):
+            rc = posttrain_main(["ppo", "--recipe", str(recipe), f"run.output_dir={root / 'runs'}",
+                                 f"run.threads={args.threads}", "run.quiet=true", f"max_steps={iters}"])
         assert rc == 0, "posttrain ppo failed"
         rows = [json.loads(l) for l in (root / "runs" / "bench-ppo" / "ppo" / "metrics.jsonl").read_text().splitlines()]
         rows = [r for r in rows if "time/iteration_s" in r]
-        assert len(rows) == iters == len(score_times), (len(rows), iters, len(score_times))
-        return [{"iteration": r["time/iteration_s"], "rollout": r["time/rollout_s"], "scoring": s,
-                 "update": r["time/iteration_s"] - r["time/rollout_s"] - s, "length": r["rollout/length"]}
-                for r, s in zip(rows, score_times)][1:]  # the first iteration is warm-up
+        assert len(rows) == iters, (len(rows), iters)
+        return [{"iteration": r["time/iteration_s"], "rollout": r["time/rollout_s"], "scoring": r["time/score_s"],
+                 "update": r["time/iteration_s"] - r["time/rollout_s"] - r["time/score_s"],
+                 "length": r["rollout/length"]} for r in rows][1:]  # the first iteration is warm-up
 
     return SimpleNamespace(iters=iters, rollout=rollout, minibatch=minibatch, epochs=epochs, base=base,
                            runners={"posttrain": ours}, cleanup=lambda: shutil.rmtree(root, ignore_errors=True))

@@ -21,7 +21,7 @@ LAYERS: list[set[str]] = [
     {"lean"},
     {"logprobs", "losses", "advantages"},
     {"rollout", "loop", "sharding"},
-    {"scoring", "evaluation", "preferences"},
+    {"scoring", "evaluation", "preferences", "problems"},
     {"trainers"},
     {"cli", "__main__", "__init__"},
 ]

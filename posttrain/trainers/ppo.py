@@ -1,120 +1,49 @@
-"""PPO for RLHF (Ziegler et al. 2019; Stiennon et al. 2020; Ouyang et al. 2022): policy, value model, frozen
-reference and reward model, rollouts from the shared engine.
+"""PPO for RLHF (Ziegler et al. 2019; Stiennon et al. 2020; Ouyang et al. 2022) on the shared rollout engine.
 
-CPU:        posttrain ppo --recipe tiny-summarize        (from nothing: SFT, pairs, reward model, PPO, eval;
-                                                          see the recipe header for the times)
+CPU:        posttrain ppo --recipe tiny-summarize   (from nothing: SFT, pairs, reward model, PPO, eval; see the recipe)
 Multi-GPU:  accelerate launch --num_processes 8 -m posttrain ppo --recipe tiny-summarize model.path=/path/to/hf-model
             (2 CPU processes: accelerate launch --config_file recipes/launch/cpu-2proc.yaml -m posttrain ppo
             --recipe tiny-summarize run.threads=1; tested against one process in tests/posttrain/test_distributed.py)
-LoRA:       posttrain ppo --recipe tiny-summarize lora.enabled=true   (see "LoRA" below)
+LoRA:       posttrain ppo --recipe tiny-summarize lora.enabled=true
 
-Reads top to bottom: build the models (policy and reference from the SFT model, value model, reward);
-measure the reward statistics of SFT samples (reward normalisation); then loop { rollout batch from
-the engine -> score -> log-probs of policy (old), reference and values -> per-token rewards with the
-KL penalty -> GAE -> ppo_epochs x minibatches of clipped policy and value updates -> KL controller ->
-log -> eval (gold, win-rate vs SFT, proxy RM, KL) -> checkpoint }; save final/ (the policy, a HF
-directory); print the gold score and win-rate against the SFT model.
-
-Implementation details it follows, numbered as in Huang et al. 2022/2024 ("The N Implementation
-Details of RLHF with PPO", ICLR blog track 2023; "The N+ Implementation Details of RLHF with PPO:
-A Case Study on TL;DR Summarization", 2024), each a config flag where it is a choice, each flag's effect
-tested in tests/posttrain/test_ppo.py (the clipped losses and GAE themselves in test_losses.py and
-test_advantages.py):
- 1. Reward normalisation (`reward_norm`): "init" (default) measures the reward of `reward_norm_prompts`
-    SFT samples before training and rescales every later score to that mean 0 / std 1, as
-    lm-human-preferences normalises its reward model on samples of the initial policy (Ziegler et al.
-    2019 §2.2; Huang 2022 "reward normalization"); "batch" whitens each rollout batch's scores; "none".
+Implementation details, numbered as in Huang et al. ("The N Implementation Details of RLHF with PPO", 2022; "The N+
+Implementation Details of RLHF with PPO: A Case Study on TL;DR Summarization", 2024); each flag's effect is tested in
+tests/posttrain/test_ppo.py (the losses and GAE themselves in test_losses.py and test_advantages.py):
+ 1. Reward normalisation (`reward_norm`): "init" to mean 0 / std 1 of `reward_norm_prompts` SFT samples measured
+    before training (lm-human-preferences, Ziegler et al. 2019 §2.2); "batch": each batch whitened; "none".
  2. Reward clipping (`reward_clip`): normalised scores clipped to [-c, c] (0: off).
- 3. EOS trick (`missing_eos_penalty`): a completion that never ends (finish reason "length") gets its
-    score lowered by this much (after normalisation, before clipping). Huang 2024 replace the score
-    by -1; we subtract, as TRL's `missing_eos_penalty` does, so the RM's ranking of such samples stays.
- 4. KL as a per-token reward (`kl_estimator`, `kl_coef`): reward_t = -beta * KL_t at every completion
-    token plus the score at the last one (`advantages.rewards_with_kl`; InstructGPT eq. 2). KL_t is
-    Schulman's k1 (log pi - log pi_ref, default: its per-sequence sum is the KL the objective has) or
-    k3 (`losses.kl_penalty`), from the rollout-time log-probs.
- 5. Adaptive KL controller (`kl_control`, `kl_target`, `kl_horizon`): Ziegler et al. 2019's
-    proportional controller on the mean per-sequence k1 KL of each rollout batch; "fixed" keeps kl_coef.
- 6. Reward whitening (`whiten_rewards`, off): TRL's whiten_rewards, per-token rewards whitened over the
-    batch (the mean is kept) before GAE.
+ 3. EOS trick (`missing_eos_penalty`): subtracted from the score of a completion that never ends (TRL's; Huang
+    2024 set it to -1 instead).
+ 4. KL as a per-token reward (`kl_estimator`, `kl_coef`; InstructGPT eq. 2): -beta * KL_t (Schulman's k1 or k3)
+    at every completion token, plus the score at the last one (`advantages.rewards_with_kl`).
+ 5. Adaptive KL controller (`kl_control`, `kl_target`, `kl_horizon`): Ziegler et al. 2019's, on the mean k1 KL.
+ 6. Reward whitening (`whiten_rewards`, off): TRL's, per-token rewards whitened over the batch, mean kept.
  7. GAE (`gamma`, `lam`): gamma = 1 (Huang 2022: no discount inside a completion), lam = 0.95.
- 8. Advantage whitening (`whiten_advantages`): over the completion tokens of the whole rollout batch
-    (`logprobs.masked_whiten`), once, after GAE (returns come from the raw advantages).
+ 8. Advantage whitening (`whiten_advantages`): over the batch's completion tokens, after GAE (`masked_whiten`).
  9. Clipped surrogate (`clip_eps`), token-mean aggregation (`losses.ppo_policy_loss`).
-10. Value clipping (`value_clip`): `losses.value_loss`'s clipped form around the rollout-time values
-    (0: plain squared error).
-11. Value model init (`value_init`): "reward" (default) starts the value model as a copy of the reward
-    model, transformer and head (lm-human-preferences; Huang 2022 "value head initialised from the
-    reward model"); "policy" starts it as the SFT transformer with a new, seeded one-output head.
-12. Separate policy and value networks, each with its own AdamW. Not a choice here: with two
-    optimizers a value-loss coefficient would only rescale the value gradient, which Adam undoes,
-    so there is `value_lr` instead of vf_coef.
-13. Dropout disabled (`disable_dropout`): dropout modules and attention dropout set to 0 in policy,
-    value and reference, so the log-probs of the update equal the rollout's at the first minibatch.
-14. Temperature (`scale_logits_by_temperature`): rollouts sample at `temperature`, and every log-prob
-    of the update (old, new, reference) divides the logits by the same temperature (Huang 2022:
-    "scale the logits by the sampling temperature"), so the ratio and the KL are those of the
-    distribution actually sampled. Off: log-probs of the raw (temperature-1) policy.
-15. No top-k / top-p at rollout time (not a flag): sampling from the full distribution keeps the
-    engine's sampling log-probs equal to the policy's, which the ratio needs.
-16. Old log-probs recomputed after the rollout (not a flag) with `posttrain.logprobs` (the same
-    forward as the update), not taken from the engine: the first minibatch's ratio is exactly 1.
-    The engine's numbers are compared and logged (rollout/logprob_gap).
-17. Entropy bonus (`entropy_coef`, 0 by default as in the RLHF implementations Huang et al. study):
-    loss -= coef * mean token entropy of the policy on the rollout tokens.
-18. Several epochs (`ppo_epochs`) of minibatches (`minibatch_size`), reshuffled every epoch
-    (seeded by seed, iteration and epoch).
+10. Value clipping (`value_clip`): around the rollout-time values (`losses.value_loss`; 0: plain squared error).
+11. Value model init (`value_init`): "reward" copies the reward model (lm-human-preferences; Huang 2022); "policy"
+    is the SFT transformer under a new, seeded head.
+12. Separate policy and value networks with their own AdamW (not a flag): `value_lr`, no vf_coef (Adam undoes it).
+13. Dropout disabled (`disable_dropout`; LoRA dropout too) in policy, value and reference (Huang 2022).
+14. Logits divided by the sampling temperature (`scale_logits_by_temperature`; Huang 2022) in every update log-prob.
+15. No top-k / top-p at rollout time (not a flag): the engine's log-probs stay the policy's.
+16. Old log-probs recomputed after the rollout (not a flag): the first ratio is exactly 1 (rollout/logprob_gap).
+17. Entropy bonus (`entropy_coef`): 0 by default, as in the RLHF implementations Huang et al. study.
+18. Several epochs (`ppo_epochs`) of minibatches (`minibatch_size`), reshuffled every epoch (seeded).
 19. Learning-rate annealing (`schedule`): linear to 0 over all optimizer steps by default.
 
-Departures: one completion per prompt per rollout (no best-of / groups); no reward-model training
-during PPO; rewards come through `posttrain.scoring` (`RewardModelScorer`, or `GoldScorer` with
-`reward=gold` for ablations) from the completion TEXT, re-tokenised as the reward model was trained;
-the value model scores the sampled token ids. Non-finite loss or gradient stops the run naming the
-step (weights are also checked before each checkpoint); the last good checkpoint stays intact.
+Departures: one completion per prompt (no groups); no reward-model training during PPO; rewards come through
+`posttrain.scoring` (`RewardModelScorer`, or `GoldScorer` with reward=gold) from the completion TEXT, re-tokenised
+as the reward model was trained, while the value model reads the sampled ids. A non-finite loss, gradient or weight
+stops the run naming the iteration; the last good checkpoint stays. In memory: policy, value, frozen reference, RM.
 
-Models in memory during training: 4 (policy, value, reference, reward model); the reference and the
-reward model are frozen and in eval mode. With LoRA: 3 (see below).
+Several processes follow posttrain/sharding.py: `rollout_batch_size` and `minibatch_size` are global (minibatch_size
+a multiple of the processes), everything computed from the gathered batch is global, `global_token_mean` gives DDP
+the whole minibatch's gradient; the main process evaluates and writes metrics.jsonl, final/ and eval.json.
 
-Several processes (`accelerate launch`, data parallel). `rollout_batch_size` and `minibatch_size` are
-GLOBAL (over all processes); minibatch_size must be a multiple of the number of processes W. What each
-process does on its own, and what is global:
-- Per process: process r takes positions r, r + W, ... of the iteration's global prompt batch
-  (`loop.batch_indices`), generates their completions (prompt keys = dataset indices, so every
-  sample is the one a single process would draw, up to float differences between batch shapes; see
-  posttrain.rollout), scores them, and runs the no-grad forwards of the old policy, the reference and
-  the value model on those rows. reward_norm=init measures its SFT samples sharded the same way.
-- Gathered (every process then holds the whole rollout batch, in global order): rollout records, raw
-  scores and those per-token tensors (small next to the forwards). Everything computed from them is
-  therefore global and identical on every process: reward normalisation (init statistics, or
-  "batch"), the KL penalty, reward whitening, GAE, advantage whitening over the completion tokens of
-  the whole batch, the KL controller's mean KL (so the coefficient stays in step), the rollout
-  metrics.
-- Updates: the epoch permutation of the global batch is the same on every process (seeded by seed,
-  iteration, epoch); of each global minibatch, process r takes rows r, r + W, ... Every forward that
-  needs gradients goes through the accelerate-prepared (DDP) module -- the value model's per-token
-  forward too (`TokenValueModel`). Each process scales its token-mean loss by its tokens / the
-  minibatch's tokens x W, so DDP's gradient average is the gradient of the token mean over the whole
-  minibatch, as in one process (`global_token_mean`). Logged policy/value metrics are global too
-  (token means weighted the same way, ratio_max a max, explained variance from summed moments); a
-  non-finite loss on any process stops every process at the same step.
-- Main process only: evaluation, the SFT baseline completions, the proxy scorer, metrics.jsonl,
-  final/ and eval.json; checkpoints are written once (`loop.Checkpointer`). time/* metrics are the
-  main process's.
-
-LoRA (`lora.enabled=true`; peft via `posttrain.models.maybe_lora`): the policy gets adapters; the
-reference is `reference_view(policy)`, the same weights with the adapters switched off (no second copy
-of the policy is loaded). The value model gets its own adapters too (task type SEQ_CLS: peft trains
-its score head fully): `lora.enabled` means no full-weight training in this stage, and a fully trained
-value model would need gradients and two Adam moments of a whole model (3 weight-sized copies), the
-memory LoRA is there to save. The value model remains a separate set of base weights (its transformer
-is the reward model's, or the SFT model's under value_init=policy, where a second adapter on the policy's
-own base weights would save one more copy; not done). LoRA dropout counts as
-dropout for detail 13. final/ is saved merged (a plain HF model); checkpoints hold the full state.
-Models in memory: 3 sets of base weights (policy = reference, value, reward model) and adapters.
-Measured (one thread): the tiny-summarize recipe with lora.enabled=true reaches a gold win-rate of 0.672
-against SFT at the recipe's lr (0.685 with lr=1e-3 value_lr=1e-3, as full PPO), with 23 MiB of live
-weights + Adam state instead of 41 (peak RSS 720 vs 700 MiB: on a 1.4M-parameter model the runtime
-dominates and peft adds ~20 MiB); with the `base` preset (26M parameters, minibatch 4) 429 vs 899 MiB
-of live tensors and peak RSS 1235 vs 1670 MiB.
+LoRA (`models.maybe_lora`): policy and value model (SEQ_CLS: its head trains fully) get adapters; the reference is
+the policy with them off (`models.reference_view`): 3 sets of base weights. final/ is saved merged. See RESULTS.md.
 """
 from __future__ import annotations
 
@@ -127,14 +56,15 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from posttrain import loop
+from posttrain import evaluation, loop, models, sharding, tasks
+from posttrain.advantages import AdaptiveKLController, FixedKLController, gae, rewards_with_kl
+from posttrain.config import ConfigError, Resolved
 from posttrain.lean import train as lean
 from posttrain.lean.support import lean_support
-from posttrain.advantages import AdaptiveKLController, FixedKLController, gae, rewards_with_kl
-from posttrain.config import ConfigError, Resolved, save_resolved
-from posttrain.logprobs import batched_logprobs, masked_mean, masked_sum, masked_whiten, sequence_logprobs
-from posttrain.models import load_reward_init, position_ids_from_mask, resolve_dtype, unwrap_model
+from posttrain.logprobs import masked_mean, masked_sum, masked_whiten, sequence_logprobs
 from posttrain.losses import kl_penalty, ppo_policy_loss, value_loss
+from posttrain.rollout import SamplingParams, collate_rollouts, generate
+from posttrain.scoring import GoldScorer, RewardModelScorer
 
 
 @dataclass
@@ -221,36 +151,37 @@ class PPOConfig:
     """Continue from the newest checkpoint in the run directory."""
 
 
-def check_config(cfg: PPOConfig) -> None:
-    """One-line ConfigErrors for settings that cannot run, before anything loads."""
-    def bad(msg: str) -> ConfigError:
-        return ConfigError(f"ppo.{msg}")
-
+def check_config(cfg: PPOConfig, world: int = 1) -> None:
+    """One-line ConfigErrors for settings that cannot run (with `world` processes), before anything loads."""
+    if cfg.minibatch_size % world:
+        raise ConfigError(f"ppo.minibatch_size={cfg.minibatch_size} must be a multiple of the number of processes "
+                          f"({world}): each process takes an equal share of every minibatch")
     for name in ("max_steps", "rollout_batch_size", "minibatch_size", "ppo_epochs", "max_new_tokens"):
         if getattr(cfg, name) < 1:
-            raise bad(f"{name} must be >= 1, got {getattr(cfg, name)}")
+            raise ConfigError(f"ppo.{name} must be >= 1, got {getattr(cfg, name)}")
     if cfg.rollout_batch_size % cfg.minibatch_size:
-        raise bad(f"minibatch_size={cfg.minibatch_size} must divide rollout_batch_size={cfg.rollout_batch_size}")
+        raise ConfigError(f"ppo.minibatch_size={cfg.minibatch_size} must divide "
+                          f"rollout_batch_size={cfg.rollout_batch_size}")
     if cfg.temperature <= 0 or not math.isfinite(cfg.temperature):
-        raise bad(f"temperature must be > 0 (PPO samples; greedy rollouts have no ratio), got {cfg.temperature}")
+        raise ConfigError(f"ppo.temperature must be > 0 (PPO samples; greedy rollouts have no ratio), "
+                          f"got {cfg.temperature}")
     if cfg.clip_eps <= 0:
-        raise bad(f"clip_eps must be > 0, got {cfg.clip_eps}")
+        raise ConfigError(f"ppo.clip_eps must be > 0, got {cfg.clip_eps}")
     for name in ("value_clip", "reward_clip", "missing_eos_penalty", "entropy_coef", "kl_coef", "lr", "value_lr"):
         if getattr(cfg, name) < 0:
-            raise bad(f"{name} must be >= 0, got {getattr(cfg, name)}")
+            raise ConfigError(f"ppo.{name} must be >= 0, got {getattr(cfg, name)}")
     if not (0.0 <= cfg.gamma <= 1.0 and 0.0 <= cfg.lam <= 1.0):
-        raise bad(f"gamma and lam must be in [0, 1], got gamma={cfg.gamma}, lam={cfg.lam}")
+        raise ConfigError(f"ppo.gamma and lam must be in [0, 1], got gamma={cfg.gamma}, lam={cfg.lam}")
     if cfg.kl_control == "adaptive" and (cfg.kl_target <= 0 or cfg.kl_horizon < 1):
-        raise bad(f"kl_target must be > 0 and kl_horizon >= 1 with kl_control=adaptive, got {cfg.kl_target}, "
-                  f"{cfg.kl_horizon}")
+        raise ConfigError(f"ppo.kl_target must be > 0 and kl_horizon >= 1 with kl_control=adaptive, got "
+                          f"{cfg.kl_target}, {cfg.kl_horizon}")
     if cfg.reward_norm == "init" and cfg.reward_norm_prompts < 2:
-        raise bad(f"reward_norm_prompts must be >= 2 with reward_norm=init, got {cfg.reward_norm_prompts}")
+        raise ConfigError(f"ppo.reward_norm_prompts must be >= 2 with reward_norm=init, got {cfg.reward_norm_prompts}")
 
 
 # ----------------------------------------------------------------------------- models
 def disable_dropout(model) -> int:
-    """Detail 13: every nn.Dropout p, attention-dropout attribute and config *dropout* field set to 0.
-    Returns how many were non-zero."""
+    """Detail 13: every nn.Dropout p, attention-dropout attribute and config *dropout* field set to 0; how many were."""
     changed = 0
     for module in model.modules():
         if isinstance(module, torch.nn.Dropout) and module.p:
@@ -270,36 +201,30 @@ def build_value_model(value_init: str, sft_dir: Path, rm_dir: Path | None, pad_i
     """Detail 11: the value model, a sequence-classification model whose head is read at every token."""
     from transformers import AutoModelForSequenceClassification
 
-
     if value_init == "reward":
         if rm_dir is None:
             raise ConfigError("ppo.value_init=reward needs a reward model; set ppo.reward_model or value_init=policy")
         model = AutoModelForSequenceClassification.from_pretrained(str(rm_dir), local_files_only=True,
-                                                                   dtype=resolve_dtype(dtype))
+                                                                   dtype=models.resolve_dtype(dtype))
         model.config.pad_token_id = pad_id
         return model.to(device)
-    return load_reward_init(sft_dir, pad_id, seed, device, dtype)
+    return models.load_reward_init(sft_dir, pad_id, seed, device, dtype)
 
 
 def token_values(value_model, input_ids: torch.Tensor, attention_mask: torch.Tensor) -> torch.Tensor:
-    """Per-token values aligned with input_ids (the `posttrain.logprobs` convention): (B, T).
-
-    values[:, t] = V(input_ids[:, :t]) = the head on the hidden state of token t-1, i.e. the value of
-    the state in which token t is chosen; column 0 is 0. Positions count real tokens (left padding).
-    A plain fp32 Llama-family value model runs `posttrain.lean.train.lean_hidden` (called inside DDP's forward
-    when wrapped, see `TokenValueModel`), else its decoder's own forward.
-    """
-    inner = unwrap_model(value_model)
+    """Per-token values (B, T) aligned with input_ids (the `posttrain.logprobs` convention): values[:, t] =
+    V(input_ids[:, :t]), the head on token t-1's hidden state (the state in which token t is chosen); column 0 is 0.
+    Positions count real tokens (left padding). A plain fp32 Llama-family model runs `lean.lean_hidden`."""
+    inner = models.unwrap_model(value_model)
     if hasattr(inner, "get_base_model"):  # peft (LoRA): the adapters live inside the base model's layers
         inner = inner.get_base_model()
-    base = getattr(inner, inner.base_model_prefix)
     dev = next(inner.parameters()).device
     input_ids, attention_mask = input_ids.to(dev), attention_mask.to(dev)
     if lean_support(inner, input_ids.shape[1], mode="train", head="score")[0]:  # same numbers, fewer ops
         hidden = lean.lean_hidden(inner, input_ids, attention_mask)  # (B, T, H)
     else:
-        hidden = base(input_ids=input_ids, attention_mask=attention_mask,
-                      position_ids=position_ids_from_mask(attention_mask)).last_hidden_state  # (B, T, H)
+        hidden = getattr(inner, inner.base_model_prefix)(input_ids=input_ids, attention_mask=attention_mask,
+                     position_ids=models.position_ids_from_mask(attention_mask)).last_hidden_state  # (B, T, H)
     v = inner.score(hidden).squeeze(-1).float()  # (B, T): value after token j
     return torch.cat([torch.zeros_like(v[:, :1]), v[:, :-1]], dim=1)  # (B, T)
 
@@ -318,11 +243,7 @@ class TokenValueModel(torch.nn.Module):
 
 def reward_scorer(reward: str, task_name: str, rm_dir: Path | None, device):
     """The training reward through `posttrain.scoring` (tests replace this function with a hand-made scorer)."""
-    from posttrain.scoring import GoldScorer, RewardModelScorer
-
-    if reward == "gold":
-        return GoldScorer(task_name)
-    return RewardModelScorer(rm_dir, device=device)
+    return GoldScorer(task_name) if reward == "gold" else RewardModelScorer(rm_dir, device=device)
 
 
 # ----------------------------------------------------------------------------- pure steps of an iteration
@@ -332,8 +253,7 @@ def logprob_temperature(cfg: PPOConfig) -> float:
 
 
 @torch.no_grad()
-def shape_scores(raw: torch.Tensor, ended: torch.Tensor, cfg: PPOConfig,
-                 norm: dict[str, float] | None) -> torch.Tensor:
+def shape_scores(raw: torch.Tensor, ended: torch.Tensor, cfg: PPOConfig, norm: dict[str, float] | None) -> torch.Tensor:
     """Details 1-3: raw scores (B,) -> normalised (init stats or batch), minus the missing-EOS penalty
     where `ended` (B,) is False, clipped."""
     s = raw.float()
@@ -380,96 +300,25 @@ def critic_loss(cfg: PPOConfig, values: torch.Tensor, old_values: torch.Tensor, 
     """Detail 10: `losses.value_loss`, clipped around the rollout-time values unless value_clip = 0."""
     return value_loss(values, old_values, returns, completion_mask, clip_range=cfg.value_clip or None)
 
-
-# ----------------------------------------------------------------------------- several processes
-# Process r of W holds the rows at global positions r, r + W, ... (see the module docstring).
-TOKEN_MEAN_METRICS = frozenset({"clip_frac", "clip_frac_low", "clip_frac_high", "approx_kl", "ratio_mean", "entropy",
-                                "value_clip_frac", "value_mean"})
-
-
-def gather_rows(accelerator, items: list, positions: list[int]) -> list:
-    """Every process's `items` (picklable; item i sits at global position positions[i]), in global order."""
-    if accelerator.num_processes == 1:
-        return list(items)
-    from accelerate.utils import gather_object
-
-    pairs = gather_object(list(zip(positions, items)))
-    return [x for _, x in sorted(pairs, key=lambda t: t[0])]
+# ----------------------------------------------------------------------------- the pieces train() calls
+@dataclass
+class PPOModels:
+    """The models of a run (policy and value model as accelerate prepared them) and its reward scorers."""
+    policy: Any
+    value: Any  # a TokenValueModel once prepared
+    reference: Any
+    tokenizer: Any
+    scorer: Any  # the training reward
+    proxy: Any  # the reward model as the evaluation's proxy scorer (main process), or None
 
 
-def gather_row_tensor(accelerator, local: torch.Tensor, positions: list[int]) -> torch.Tensor:
-    """Every process's rows (n, ...) (the same n and trailing shape everywhere) -> (W * n, ...) in global order."""
-    if accelerator.num_processes == 1:
-        return local
-    rows = accelerator.gather(local.contiguous())  # (W * n, ...) process-major
-    where = accelerator.gather(torch.as_tensor(positions, dtype=torch.long, device=local.device))  # (W * n,)
-    return torch.empty_like(rows).index_copy_(0, where, rows)
-
-
-def global_token_mean(accelerator, loss: torch.Tensor, metrics: dict[str, float], n_local: float,
-                      n_global: float) -> tuple[torch.Tensor, dict[str, float]]:
-    """A process's token-mean loss and metrics over its rows of a minibatch, rescaled by
-    n_local / n_global * W: DDP's gradient average and `loop.optimizer_step`'s metric average over
-    processes then give the token mean over the whole minibatch, as one process computes it.
-    ratio_max becomes the max over processes. A non-finite loss on any process makes every process's
-    loss NaN, so all of them stop at the same step (none waits forever in the next all-reduce).
-    The identity in one process."""
-    W = accelerator.num_processes
-    if W == 1:
-        return loss, metrics
-    f = n_local * W / n_global
-    out = {k: (v * f if k in TOKEN_MEAN_METRICS else v) for k, v in metrics.items()}
-    mine = torch.tensor([[0.0 if bool(torch.isfinite(loss)) else 1.0, metrics.get("ratio_max", 0.0)]],
-                        dtype=torch.float64, device=accelerator.device)
-    every = accelerator.gather(mine)  # (W, 2)
-    if "ratio_max" in metrics:
-        out["ratio_max"] = float(every[:, 1].max())
-    if float(every[:, 0].sum()) > 0:
-        loss = loss * float("nan")
-    return loss * f, out
-
-
-def global_explained_variance(accelerator, values: torch.Tensor, returns: torch.Tensor,
-                              completion_mask: torch.Tensor) -> float:
-    """`losses.value_loss`'s explained variance, 1 - Var(R - V) / Var(R), over the completion tokens of
-    every process's rows (from summed first and second moments)."""
-    cm = completion_mask.bool()
-    r = returns.detach()[cm].double()
-    d = (returns.detach() - values.detach())[cm].double()
-    t = torch.stack([torch.tensor(float(r.numel()), dtype=torch.float64), r.sum(), (r * r).sum(), d.sum(),
-                     (d * d).sum()]).to(accelerator.device)
-    n, sr, srr, sd, sdd = accelerator.reduce(t, reduction="sum").tolist()
-    var_r, var_d = srr - sr * sr / max(n, 1.0), sdd - sd * sd / max(n, 1.0)  # both times (n - 1)
-    return 1.0 - var_d / var_r if var_r > 0 else float("nan")
-
-
-def _trim(mb: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """Drop columns that are padding in every row of a minibatch (all tensors (b, T) sliced alike)."""
-    live = mb["attention_mask"].any(0).nonzero()
-    lo, hi = int(live[0]), int(live[-1]) + 1
-    return {k: v[:, lo:hi] for k, v in mb.items()}
-
-
-def _weights_finite(*models) -> bool:
-    return all(bool(torch.isfinite(p).all()) for m in models for p in m.parameters())
-
-
-# ----------------------------------------------------------------------------- train
-def train(res: Resolved, ensure) -> Path:
-    """PPO-for-RLHF from the SFT model; returns the final policy directory."""
-    from posttrain import evaluation, tasks
-    from posttrain.models import is_model_dir, load_model, load_tokenizer, maybe_lora, reference_view, save_model
-    from posttrain.rollout import SamplingParams, collate_rollouts, generate
-    from posttrain.scoring import RewardModelScorer
-
-    cfg: PPOConfig = res.stage_cfg
-    check_config(cfg)
-    run_dir = res.stage_dir()
+def load_inputs(res: Resolved, cfg: PPOConfig, ensure) -> tuple[list[dict], list[dict], Path, Path | None]:
+    """Training prompts, held-out rows with gold meta (none without a gold metric), the SFT and the reward model (built
+    when reward=rm or value_init=reward needs it, else only the proxy curve if it exists); one-line ConfigErrors."""
     task = tasks.get_task(res.task.name)
-    has_gold = tasks.has_gold(task)
-    if cfg.reward == "gold" and not has_gold:
+    if cfg.reward == "gold" and not tasks.has_gold(task):
         raise ConfigError(f"ppo.reward=gold needs a task with a gold metric; {res.task.name!r} has none")
-    if cfg.reward_model and not is_model_dir(cfg.reward_model):
+    if cfg.reward_model and not models.is_model_dir(cfg.reward_model):
         raise ConfigError(f"ppo.reward_model {cfg.reward_model!r} is not a reward-model directory")
     train_rows = tasks.load_split(res.task, "train")
     if len(train_rows) < cfg.rollout_batch_size:
@@ -478,276 +327,224 @@ def train(res: Resolved, ensure) -> Path:
     if cfg.reward == "gold" and not all(r.get("meta") for r in train_rows):
         raise ConfigError("ppo.reward=gold needs the task's meta in every training row; task.train_file has rows "
                           "without it (use reward=rm)")
-    eval_rows = [r for r in tasks.load_split(res.task, "eval") if r.get("meta")] if has_gold else []
-
+    eval_rows = [r for r in tasks.load_split(res.task, "eval") if r.get("meta")] if tasks.has_gold(task) else []
     sft_dir = ensure("sft")
     rm_dir: Path | None = Path(cfg.reward_model) if cfg.reward_model else None
     if rm_dir is None and (cfg.reward == "rm" or cfg.value_init == "reward"):
         rm_dir = ensure("rm")
-    elif rm_dir is None and is_model_dir(res.stage_dir("rm") / "final"):
-        rm_dir = res.stage_dir("rm") / "final"  # reward=gold: the RM is only the proxy curve
-    tokenizer = load_tokenizer(sft_dir, res.model)
-    pad_id = tokenizer.pad_token_id
+    elif rm_dir is None and models.is_model_dir(res.stage_dir("rm") / "final"):
+        rm_dir = res.stage_dir("rm") / "final"
+    return train_rows, eval_rows, sft_dir, rm_dir
 
-    accelerator = loop.setup(cfg.seed, res.run.threads)
-    rank, world = accelerator.process_index, accelerator.num_processes
-    if cfg.minibatch_size % world:
-        raise ConfigError(f"ppo.minibatch_size={cfg.minibatch_size} must be a multiple of the number of processes "
-                          f"({world}): each process takes an equal share of every minibatch")
-    main = accelerator.is_main_process
-    say = print if main else (lambda *a, **k: None)
-    if main:
-        loop.prepare_run_dir(run_dir, cfg.resume, say)
-        save_resolved(res, run_dir / "config.yaml")
-    accelerator.wait_for_everyone()
-    dev = accelerator.device
 
-    # Models: policy and reference are the SFT model (LoRA: one model, the reference is it with the
-    # adapters off); the value model per value_init (LoRA: its own adapters); the reward.
-    policy = maybe_lora(res, load_model(sft_dir, res.model.dtype, device=dev), lambda m: say(m + " (policy)"))
-    reference = reference_view(policy) if res.use_lora else \
-        load_model(sft_dir, res.model.dtype, device=dev).eval().requires_grad_(False)
-    value_model = maybe_lora(res, build_value_model(cfg.value_init, sft_dir, rm_dir, pad_id, cfg.seed, dev,
-                                                    res.model.dtype),
-                             lambda m: say(m + " (value model)"), "SEQ_CLS")
-    if cfg.disable_dropout:
-        for m in (policy, reference, value_model):
-            disable_dropout(m)
+def build_models(res: Resolved, cfg: PPOConfig, sft_dir: Path, rm_dir: Path | None, dev, say, main: bool) -> PPOModels:
+    """Policy and reference from the SFT model (`models.load_reference`), the value model per value_init (LoRA: each
+    its own adapters), dropout off (detail 13), the reward and the proxy scorer."""
+    tokenizer = models.load_tokenizer(sft_dir, res.model)
+    policy = models.maybe_lora(res, models.load_model(sft_dir, res.model.dtype, dev), lambda s: say(s + " (policy)"))
+    reference = models.load_reference(res, policy, sft_dir, dev)
+    value = build_value_model(cfg.value_init, sft_dir, rm_dir, tokenizer.pad_token_id, cfg.seed, dev, res.model.dtype)
+    value = models.maybe_lora(res, value, lambda s: say(s + " (value model)"), "SEQ_CLS")
+    for model in (policy, reference, value) if cfg.disable_dropout else ():
+        disable_dropout(model)
     scorer = reward_scorer(cfg.reward, res.task.name, rm_dir, dev)
-    proxy = None
-    if rm_dir is not None and main:
-        proxy = scorer if isinstance(scorer, RewardModelScorer) else RewardModelScorer(rm_dir, device=dev)
-    temp_lp = logprob_temperature(cfg)
-    gen_rows = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)]
-    baseline = evaluation.complete(policy, tokenizer, [r["prompt"] for r in gen_rows],
-                                   max_new_tokens=cfg.max_new_tokens) if (gen_rows and main) else []
+    proxy = None if rm_dir is None or not main else (  # the RM's scores of evaluation completions
+        scorer if isinstance(scorer, RewardModelScorer) else RewardModelScorer(rm_dir, device=dev))
+    return PPOModels(policy, value, reference, tokenizer, scorer, proxy)
 
-    def score_rollouts(rows: list[dict], rollouts) -> list[float]:
-        if not rows:  # a process with no share (fewer reward_norm prompts than processes)
-            return []
-        res_ = scorer.score([r["prompt"] for r in rows], [ro.text for ro in rollouts], [r.get("meta") for r in rows])
-        return [float(x) for x in res_.rewards]
 
-    def sample(rows: list[dict], keys: list[int], seed: int) -> list:
-        if not rows:
-            return []
-        return generate(accelerator.unwrap_model(policy), tokenizer, [r["prompt"] for r in rows],
-                        SamplingParams(temperature=cfg.temperature, max_new_tokens=cfg.max_new_tokens, seed=seed),
-                        prompt_keys=keys)
+def rollout_and_score(accelerator, m: PPOModels, cfg: PPOConfig, train_rows: list[dict], keys: list[int],
+                      seed: int) -> tuple[list, torch.Tensor, dict[str, float]]:
+    """The global batch train_rows[keys]: each process samples (prompt keys = dataset indices: the samples one process
+    draws) and scores its positions, all gathered in global order. Returns (rollouts, raw scores (B,), {"sample":
+    s, "score": s} of this process)."""
+    where = sharding.positions(len(keys), accelerator.process_index, accelerator.num_processes)
+    rows, t0 = [train_rows[keys[p]] for p in where], time.time()  # rows: none for a process with no share
+    local = generate(accelerator.unwrap_model(m.policy), m.tokenizer, [r["prompt"] for r in rows],
+                     SamplingParams(temperature=cfg.temperature, max_new_tokens=cfg.max_new_tokens, seed=seed),
+                     prompt_keys=[keys[p] for p in where]) if rows else []
+    t1 = time.time()
+    raw = [float(x) for x in m.scorer.score([r["prompt"] for r in rows], [ro.text for ro in local],
+                                            [r.get("meta") for r in rows]).rewards] if rows else []
+    return (sharding.gather_rows(accelerator, local, where), torch.tensor(sharding.gather_rows(accelerator, raw, where),
+            dtype=torch.float32), {"sample": t1 - t0, "score": time.time() - t1})
 
+
+def measure_reward_norm(accelerator, m: PPOModels, cfg: PPOConfig, train_rows: list[dict], say) -> dict[str, float]:
+    """Detail 1: reward statistics of SFT samples of the split's last reward_norm_prompts prompts (checkpointed)."""
+    t0, k = time.time(), min(cfg.reward_norm_prompts, len(train_rows))
+    _, raw, _ = rollout_and_score(accelerator, m, cfg, train_rows, list(range(len(train_rows) - k, len(train_rows))),
+                                  cfg.seed + 1_000_003)  # (k,)
+    norm = {"mean": float(raw.mean()), "std": float(raw.std().clamp(min=1e-6)), "n": k}
+    say(f"[ppo] reward normalisation from {k} SFT samples: mean {norm['mean']:.4f}, std {norm['std']:.4f} "
+        f"({time.time() - t0:.1f}s)")
+    return norm
+
+
+@torch.no_grad()
+def rollout_values(accelerator, value, batch, micro: int) -> torch.Tensor:
+    """The value model's per-token values (B, T) of every row at rollout time, 0 outside the completion: each process
+    its rows r, r + W, ... in micro-batches, gathered (as `sharding.sharded_logprobs`)."""
+    where = sharding.positions(batch.input_ids.shape[0], accelerator.process_index, accelerator.num_processes)
+    vm, ids, am = accelerator.unwrap_model(value).eval(), batch.input_ids[where], batch.attention_mask[where]
+    local = torch.cat([vm(ids[s], am[s]) for s in loop.chunks(list(range(len(where))), micro)])  # (B/W, T)
+    values = sharding.gather_row_tensor(accelerator, local, where)  # (B, T)
+    return torch.where(batch.completion_mask.bool(), values, torch.zeros_like(values))
+
+
+def policy_update_loss(accelerator, policy, cfg: PPOConfig, mb: dict, n_local: float, n_global: float):
+    """Details 9, 14, 17 on this process's rows of a minibatch, scaled to the global minibatch's token mean."""
+    logps, ent = sequence_logprobs(policy, mb["input_ids"], mb["attention_mask"], mb["completion_mask"],
+                                   temperature=logprob_temperature(cfg), return_entropy=True)  # (b, T), (b, T)
+    loss, m = policy_loss(cfg, logps, ent, mb["old_logps"], mb["advantages"], mb["completion_mask"])
+    return sharding.global_token_mean(accelerator, loss, m, n_local, n_global)
+
+
+def value_update_loss(accelerator, value, cfg: PPOConfig, mb: dict, n_local: float, n_global: float):
+    """Detail 10 on this process's rows of a minibatch (the forward through DDP), scaled like the policy's."""
+    v = value(mb["input_ids"], mb["attention_mask"])  # (b, T)
+    loss, m = critic_loss(cfg, v, mb["old_values"], mb["returns"], mb["completion_mask"])
+    if accelerator.num_processes > 1:
+        m["explained_variance"] = sharding.global_explained_variance(accelerator, v, mb["returns"], mb["completion_mask"])
+    return sharding.global_token_mean(accelerator, loss, m, n_local, n_global)
+
+
+def evaluate(it: int, task_name: str, accelerator, m: PPOModels, rows: list[dict], baseline: list[str],
+             cfg: PPOConfig, metrics, say) -> None:
+    """`evaluation.policy_eval` against the SFT model's completions `baseline`, logged at `it` (main process)."""
+    if rows:
+        pol = accelerator.unwrap_model(m.policy).eval()  # (with LoRA, the reference runs in the policy's mode)
+        e = evaluation.policy_eval(task_name, pol, m.reference, m.tokenizer, rows[: cfg.eval_rows], baseline,
+                                   max_new_tokens=cfg.max_new_tokens, proxy=m.proxy, seed=cfg.seed + 7)
+        metrics.log(it, e, console=False)
+        say(f"[ppo] iteration {it} eval: " + ", ".join(f"{k} {v:.3f}" for k, v in e.items()
+                                                      if k in ("gold/reward", "gold/win_rate", "proxy/reward", "kl")))
+
+
+# ----------------------------------------------------------------------------- train
+def train(res: Resolved, ensure) -> Path:
+    """PPO-for-RLHF from the SFT model; returns the final policy directory."""
+    cfg: PPOConfig = res.stage_cfg
+    check_config(cfg)
+    train_rows, eval_rows, sft_dir, rm_dir = load_inputs(res, cfg, ensure)
+    accelerator, say = loop.start_run(res, cfg.seed, cfg.resume, check=lambda acc: check_config(cfg, acc.num_processes))
+    world, main, dev = accelerator.num_processes, accelerator.is_main_process, accelerator.device
+    run_dir, temp_lp = res.stage_dir(), logprob_temperature(cfg)
+    m = build_models(res, cfg, sft_dir, rm_dir, dev, say, main)
+    held_out = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)] if main else []
+    baseline = evaluation.complete(m.policy, m.tokenizer, [r["prompt"] for r in held_out],
+                                   max_new_tokens=cfg.max_new_tokens) if held_out else []  # the SFT model's
     n_mb = cfg.rollout_batch_size // cfg.minibatch_size
-    total_updates = cfg.max_steps * cfg.ppo_epochs * n_mb
-    opt_p = loop.build_optimizer(policy, cfg.lr, cfg.weight_decay)
-    opt_v = loop.build_optimizer(value_model, cfg.value_lr, cfg.weight_decay)
-    sched_p = loop.build_scheduler(opt_p, 0, total_updates, cfg.schedule, 0.0)
-    sched_v = loop.build_scheduler(opt_v, 0, total_updates, cfg.schedule, 0.0)
+    opt_p = loop.build_optimizer(m.policy, cfg.lr, cfg.weight_decay)
+    opt_v = loop.build_optimizer(m.value, cfg.value_lr, cfg.weight_decay)
+    sched_p = loop.build_scheduler(opt_p, 0, cfg.max_steps * cfg.ppo_epochs * n_mb, cfg.schedule, 0.0)  # detail 19
+    sched_v = loop.build_scheduler(opt_v, 0, cfg.max_steps * cfg.ppo_epochs * n_mb, cfg.schedule, 0.0)
     # The value model's update forward must run through DDP: wrap it so that its forward IS the per-token value.
-    policy, value_model, opt_p, opt_v = accelerator.prepare(policy, TokenValueModel(value_model), opt_p, opt_v)
+    m.policy, m.value, opt_p, opt_v = accelerator.prepare(m.policy, TokenValueModel(m.value), opt_p, opt_v)
     kl_ctl = (AdaptiveKLController(cfg.kl_coef, cfg.kl_target, cfg.kl_horizon) if cfg.kl_control == "adaptive"
               else FixedKLController(cfg.kl_coef))
     ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
     metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, main, res.run.quiet, prefix="[ppo] ")
-
-    start = 0
-    norm: dict[str, float] | None = None
-    if cfg.resume:
-        last = ckpt.latest()
-        if last is None:
-            say(f"[ppo] resume=true but no checkpoint in {ckpt.dir}; starting from iteration 0")
-        else:
-            state = ckpt.load(last, policy, opt_p, sched_p)
-            extra = state["extra"]
-            accelerator.unwrap_model(value_model).model.load_state_dict(extra["value_model"])
-            opt_v.load_state_dict(extra["value_optimizer"])
-            sched_v.load_state_dict(extra["value_scheduler"])
-            kl_ctl.load_state_dict(extra["kl_controller"])
-            norm = extra["reward_norm"]
-            start = state["step"]
-            metrics.truncate_after(start)
-            say(f"[ppo] resumed from {last} at iteration {start}")
-
+    state = loop.resume_run(ckpt, metrics, m.policy, opt_p, sched_p, resume=cfg.resume, say=say, tag="ppo",
+                            unit="iteration")
+    norm = (extra := state["extra"]).get("reward_norm")  # resumed: PPO's own part of the checkpoint, restored below
+    if extra:
+        accelerator.unwrap_model(m.value).model.load_state_dict(extra["value_model"])
+        opt_v.load_state_dict(extra["value_optimizer"])
+        sched_v.load_state_dict(extra["value_scheduler"])
+        kl_ctl.load_state_dict(extra["kl_controller"])
     if cfg.reward_norm == "init" and norm is None:
-        # Detail 1: reward statistics of SFT samples, measured once (saved in every checkpoint).
-        t0 = time.time()
-        k = min(cfg.reward_norm_prompts, len(train_rows))
-        first = len(train_rows) - k  # the end of the split: iterations draw from all of it anyway
-        mine = list(range(rank, k, world))  # this process's share; prompt keys are dataset indices
-        rows = [train_rows[first + p] for p in mine]
-        local = score_rollouts(rows, sample(rows, [first + p for p in mine], cfg.seed + 1_000_003))
-        raw = torch.tensor(gather_rows(accelerator, local, mine), dtype=torch.float32)  # (k,) all processes'
-        norm = {"mean": float(raw.mean()), "std": float(raw.std().clamp(min=1e-6)), "n": k}
-        say(f"[ppo] reward normalisation from {k} SFT samples: mean {norm['mean']:.4f}, std {norm['std']:.4f} "
-            f"({time.time() - t0:.1f}s)")
-
-    def evaluate(it: int) -> None:
-        if not (gen_rows and main):
-            return
-        pol = accelerator.unwrap_model(policy).eval()  # (with LoRA, the reference runs in the policy's mode)
-        rows = gen_rows[: cfg.eval_rows]
-        r = evaluation.compare_policy(res.task.name, pol, tokenizer, rows, baseline[: len(rows)],
-                                      max_new_tokens=cfg.max_new_tokens, proxy=proxy)
-        m = {"gold/reward": r["gold_reward"], "gold/quality": r["mean_quality"], "gold/in_band": r["frac_in_band"],
-             "gold/length": r["mean_length"], "gold/win_rate": r["win_rate"]}
-        if "proxy_reward" in r:
-            m["proxy/reward"] = r["proxy_reward"]
-        m["kl"] = evaluation.kl_to_reference(pol, reference, tokenizer, [x["prompt"] for x in rows],
-                                             max_new_tokens=cfg.max_new_tokens, seed=cfg.seed + 7)
-        metrics.log(it, m, console=False)
-        say(f"[ppo] iteration {it} eval: " + ", ".join(f"{k} {v:.3f}" for k, v in m.items()
-                                                      if k in ("gold/reward", "gold/win_rate", "proxy/reward", "kl")))
-
-    if start == 0 and cfg.eval_every:
-        evaluate(0)
+        norm = measure_reward_norm(accelerator, m, cfg, train_rows, say)
+    if state["step"] == 0 and cfg.eval_every:
+        evaluate(0, res.task.name, accelerator, m, held_out, baseline, cfg, metrics, say)
     say(f"[ppo] {cfg.max_steps} iterations x {cfg.rollout_batch_size} rollouts, {cfg.ppo_epochs} epochs x {n_mb} "
         f"minibatches of {cfg.minibatch_size}; reward {cfg.reward}" + (f" ({rm_dir})" if cfg.reward == "rm" else "")
         + f", value from {cfg.value_init}, KL {cfg.kl_estimator} coef {kl_ctl.value:g} ({cfg.kl_control}), "
         f"temperature {cfg.temperature}; {world} process(es) on {dev}")
 
-    for it in range(start, cfg.max_steps):
-        done = it + 1
-        t_it = time.time()
-        # ---- rollout (the shared engine; prompts and samples seeded by (seed, iteration)). The batch is
-        # global; this process generates, scores and runs the no-grad forwards of its share of it.
+    for it in range(state["step"], cfg.max_steps):
+        done, t_it = it + 1, time.time()
+        # ---- rollout (the shared engine; prompts and samples seeded by (seed, iteration)) and score: the batch is
+        # global, each process samples and scores its share, then every process holds all of it
         idx = loop.batch_indices(len(train_rows), cfg.rollout_batch_size, cfg.seed, it)
-        mine = list(range(rank, cfg.rollout_batch_size, world))  # positions in the global batch
-        rows = [train_rows[idx[p]] for p in mine]
-        local_ro = sample(rows, [idx[p] for p in mine], cfg.seed * 100_003 + it)
-        t_gen = time.time() - t_it
-        local_raw = score_rollouts(rows, local_ro)
-        rollouts = gather_rows(accelerator, local_ro, mine)  # the whole batch, in global order
-        raw = torch.tensor(gather_rows(accelerator, local_raw, mine), dtype=torch.float32)  # (B,)
+        rollouts, raw, t = rollout_and_score(accelerator, m, cfg, train_rows, idx, cfg.seed * 100_003 + it)
         ended = torch.tensor([ro.finish_reason != "length" for ro in rollouts])  # (B,)
-        scores = shape_scores(raw, ended, cfg, norm)  # (B,)
-        batch = collate_rollouts(rollouts, pad_id).to(dev)
+        scores = shape_scores(raw, ended, cfg, norm)  # (B,) details 1-3
+        batch = collate_rollouts(rollouts, m.tokenizer.pad_token_id).to(dev)
         cm = batch.completion_mask.bool()  # (B, T)
 
-        # ---- log-probs (old policy, reference) and values at rollout time: no grad, this process's rows
-        pol = accelerator.unwrap_model(policy).eval()
-        sel = torch.as_tensor(mine, device=dev)
-        own = {"input_ids": batch.input_ids[sel], "attention_mask": batch.attention_mask[sel],
-               "completion_mask": batch.completion_mask[sel]}
-        old_logps = gather_row_tensor(accelerator, batched_logprobs(pol, own, cfg.minibatch_size,
-                                                                    temperature=temp_lp)[0], mine)  # (B, T)
-        ref_logps = gather_row_tensor(accelerator, batched_logprobs(reference, own, cfg.minibatch_size,
-                                                                    temperature=temp_lp)[0], mine)  # (B, T)
+        # ---- log-probs (old policy, reference) and values at rollout time: no grad, each process its rows, gathered
+        pol = accelerator.unwrap_model(m.policy).eval()
+        old_logps = sharding.sharded_logprobs(accelerator, pol, batch, cfg.minibatch_size, temp_lp)  # (B, T)
+        ref_logps = sharding.sharded_logprobs(accelerator, m.reference, batch, cfg.minibatch_size, temp_lp)  # (B, T)
+        old_values = rollout_values(accelerator, m.value, batch, cfg.minibatch_size)  # (B, T)
         engine_lp = batch.logprobs if cfg.scale_logits_by_temperature else batch.policy_logprobs  # (B, T)
         lp_gap = float((old_logps - engine_lp).abs().masked_fill(~cm, 0).max())
-        with torch.no_grad():
-            vm = accelerator.unwrap_model(value_model).eval()
-            local_v = torch.cat([vm(own["input_ids"][s], own["attention_mask"][s])
-                                 for s in loop.chunks(list(range(len(mine))), cfg.minibatch_size)])  # (B/W, T)
-            old_values = gather_row_tensor(accelerator, local_v, mine)  # (B, T)
-            old_values = torch.where(cm, old_values, torch.zeros_like(old_values))
-        # From here on every process holds the same global tensors: the statistics below are global.
+
+        # ---- KL-penalised per-token rewards, GAE, whitening (global: every process holds the same tensors)
         seq_kl = masked_sum(old_logps - ref_logps, cm, -1)  # (B,) k1 per sequence, the controller's quantity
         adv = advantages_and_returns(cfg, scores.to(dev), old_logps, ref_logps, old_values, cm, kl_ctl.value)
 
         # ---- ppo_epochs x minibatches of policy and value updates (of each minibatch, process r takes
-        # rows r, r + W, ...; losses scaled to the minibatch's global token mean, see global_token_mean)
-        data = {"input_ids": batch.input_ids, "attention_mask": batch.attention_mask, "completion_mask": cm,
-                "old_logps": old_logps, "old_values": old_values, "advantages": adv["advantages"],
-                "returns": adv["returns"]}
+        # rows r, r + W, ...; losses scaled to the minibatch's global token mean, see sharding.global_token_mean)
+        data = dict(input_ids=batch.input_ids, attention_mask=batch.attention_mask, completion_mask=cm,  # (B, T) each
+                    old_logps=old_logps, old_values=old_values, advantages=adv["advantages"], returns=adv["returns"])
         sums: dict[str, float] = {}
-        n_updates = 0
-        try:
+        with loop.naming_checkpoint(ckpt, f"PPO iteration {done}"):
             for epoch in range(cfg.ppo_epochs):
                 perm = np.random.default_rng([cfg.seed, it, epoch]).permutation(cfg.rollout_batch_size)
                 for j in range(n_mb):
                     whole = torch.as_tensor(perm[j * cfg.minibatch_size:(j + 1) * cfg.minibatch_size], device=dev)
-                    n_global = float(cm[whole].sum())  # completion tokens of the global minibatch
-                    mb = _trim({k: v[whole[rank::world]] for k, v in data.items()})
-                    n_local = float(mb["completion_mask"].sum())
-
-                    def p_loss(mb):
-                        logps, ent = sequence_logprobs(policy, mb["input_ids"], mb["attention_mask"],
-                                                       mb["completion_mask"], temperature=temp_lp,
-                                                       return_entropy=True)  # (b, T), (b, T)
-                        loss, m = policy_loss(cfg, logps, ent, mb["old_logps"], mb["advantages"],
-                                              mb["completion_mask"])
-                        return global_token_mean(accelerator, loss, m, n_local, n_global)
-
-                    def v_loss(mb):
-                        v = value_model(mb["input_ids"], mb["attention_mask"])  # (b, T), through DDP
-                        loss, m = critic_loss(cfg, v, mb["old_values"], mb["returns"], mb["completion_mask"])
-                        if world > 1:
-                            m["explained_variance"] = global_explained_variance(accelerator, v, mb["returns"],
-                                                                                mb["completion_mask"])
-                        return global_token_mean(accelerator, loss, m, n_local, n_global)
-
-                    mp = loop.optimizer_step(accelerator, policy, opt_p, sched_p, [mb], p_loss, cfg.max_grad_norm,
-                                             done)
-                    mv = loop.optimizer_step(accelerator, value_model, opt_v, sched_v, [mb], v_loss,
-                                             cfg.max_grad_norm, done)
-                    for k, v in mp.items():
-                        key = "policy/" + ("loss" if k == "loss" else k)
-                        sums[key] = sums.get(key, 0.0) + v
-                    for k, v in mv.items():
-                        key = "value/" + k
-                        sums[key] = sums.get(key, 0.0) + v
-                    n_updates += 1
+                    mb = sharding.trim_columns({k: v[whole[accelerator.process_index::world]] for k, v in data.items()})
+                    n = (float(mb["completion_mask"].sum()), float(cm[whole].sum()))  # tokens: this process's, all
+                    mp = loop.optimizer_step(accelerator, m.policy, opt_p, sched_p, [mb], lambda b: policy_update_loss(
+                        accelerator, m.policy, cfg, b, *n), cfg.max_grad_norm, done)
+                    mv = loop.optimizer_step(accelerator, m.value, opt_v, sched_v, [mb], lambda b: value_update_loss(
+                        accelerator, m.value, cfg, b, *n), cfg.max_grad_norm, done)
+                    got = {"policy/" + k: v for k, v in mp.items()} | {"value/" + k: v for k, v in mv.items()}
+                    sums = {k: sums.get(k, 0.0) + v for k, v in got.items()}
             saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
-            if (saving or (cfg.eval_every and done % cfg.eval_every == 0)) and not _weights_finite(policy,
-                                                                                                  value_model):
-                raise loop.TrainingError(f"non-finite weights after iteration {done}; stopping without saving them")
-        except loop.TrainingError as e:
-            last = ckpt.latest()
-            where = f"last good checkpoint: {last}" if last else "no checkpoint was written yet"
-            raise loop.TrainingError(f"{e} (PPO iteration {done}; {where})") from None
-        mean_kl = float(seq_kl.mean())
-        kl_coef_used = kl_ctl.value
-        kl_ctl.update(mean_kl, cfg.rollout_batch_size)  # detail 5 (a no-op when fixed)
-
+            if saving or (cfg.eval_every and done % cfg.eval_every == 0):
+                loop.check_weights(done, m.policy, m.value, unit="iteration")
+        # ---- KL controller (detail 5; a no-op when fixed)
+        mean_kl, kl_coef_used = float(seq_kl.mean()), kl_ctl.value
+        kl_ctl.update(mean_kl, cfg.rollout_batch_size)
+        # ---- log
         if done % cfg.log_every == 0 or done == cfg.max_steps:
-            lengths = cm.sum(-1).float()
-            row = {"rollout/score_raw": float(raw.mean()), "rollout/score": float(scores.mean()),
-                   "rollout/reward_total": float(masked_sum(adv["rewards"], cm, -1).mean()),
-                   "rollout/kl": mean_kl, "rollout/kl_penalty": float(masked_sum(adv["kl"], cm, -1).mean()),
-                   "kl_coef": kl_coef_used, "rollout/length": float(lengths.mean()),
-                   "rollout/no_eos": float((~ended).float().mean()), "rollout/logprob_gap": lp_gap,
-                   "rollout/returns": float(masked_mean(adv["returns"], cm)),
-                   **{k: v / n_updates for k, v in sums.items()},
-                   "time/rollout_s": t_gen, "time/iteration_s": time.time() - t_it}
-            metrics.log(done, row)
+            metrics.log(done, {
+                "rollout/score_raw": float(raw.mean()), "rollout/score": float(scores.mean()),
+                "rollout/reward_total": float(masked_sum(adv["rewards"], cm, -1).mean()),
+                "rollout/kl": mean_kl, "rollout/kl_penalty": float(masked_sum(adv["kl"], cm, -1).mean()),
+                "kl_coef": kl_coef_used, "rollout/length": float(cm.sum(-1).float().mean()),
+                "rollout/no_eos": float((~ended).float().mean()), "rollout/logprob_gap": lp_gap,
+                "rollout/returns": float(masked_mean(adv["returns"], cm)),
+                **{k: v / (cfg.ppo_epochs * n_mb) for k, v in sums.items()},
+                "time/rollout_s": t["sample"], "time/score_s": t["score"], "time/iteration_s": time.time() - t_it})
+        # ---- eval
         if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps):
-            evaluate(done)
+            evaluate(done, res.task.name, accelerator, m, held_out, baseline, cfg, metrics, say)
+        # ---- checkpoint (the value model's side, the KL controller and the reward statistics as extra)
         if saving:
-            extra = {"value_model": {k: v.detach().cpu() for k, v in
-                                     accelerator.unwrap_model(value_model).model.state_dict().items()},
-                     "value_optimizer": opt_v.state_dict(), "value_scheduler": sched_v.state_dict(),
-                     "kl_controller": kl_ctl.state_dict(), "reward_norm": norm}
-            ckpt.save(done, policy, opt_p, sched_p, {"step": done}, extra)
+            value_state = {k: v.detach().cpu() for k, v in accelerator.unwrap_model(m.value).model.state_dict().items()}
+            ckpt.save(done, m.policy, opt_p, sched_p, {"step": done}, {
+                "value_model": value_state, "value_optimizer": opt_v.state_dict(),
+                "value_scheduler": sched_v.state_dict(), "kl_controller": kl_ctl.state_dict(), "reward_norm": norm})
 
+    # ---- final/ (the policy, a HF directory), the over-optimisation plot, the comparison with the SFT model
     final = run_dir / "final"
     if main:
-        pol = accelerator.unwrap_model(policy).eval()
-        save_model(pol, tokenizer, final)
+        pol = accelerator.unwrap_model(m.policy).eval()
+        models.save_model(pol, m.tokenizer, final)
         say(f"[ppo] saved {final}")
         report: dict[str, Any] = {"model": str(final), "reference": str(sft_dir), "reward": cfg.reward,
                                   "reward_model": str(rm_dir) if rm_dir else None, "reward_norm": norm}
         note = evaluation.plot_gold_vs_proxy(list(loop.iter_jsonl(run_dir / "metrics.jsonl")),
                                              run_dir / "overoptimization.png", title=f"{res.recipe} PPO")
         say(f"[ppo] over-optimisation plot: {note}")
-        if cfg.final_eval_rows and gen_rows:
-            rows = gen_rows[: cfg.final_eval_rows]
-            base = baseline[: len(rows)]
-            sft_m = evaluation.compare_policy(res.task.name, None, tokenizer, rows, base, proxy=proxy, completions=base)
-            ppo_m = evaluation.compare_policy(res.task.name, pol, tokenizer, rows, base,
-                                              max_new_tokens=cfg.max_new_tokens, proxy=proxy)
-            ppo_m["kl"] = evaluation.kl_to_reference(pol, reference, tokenizer, [r["prompt"] for r in rows],
-                                                     max_new_tokens=cfg.max_new_tokens, seed=cfg.seed + 7)
-            sft_m["kl"] = 0.0
-            say(evaluation.format_comparison({"sft": sft_m, "ppo": ppo_m}, res.task.name))
-            report.update(sft={k: v for k, v in sft_m.items() if not k.startswith("_")},
-                          ppo={k: v for k, v in ppo_m.items() if not k.startswith("_")},
-                          samples=[{"prompt": r["prompt"][-200:], "sft": b, "ppo": p}
-                                   for r, b, p in zip(rows[:10], base, ppo_m["_completions"])])
-            counts = (f": {ppo_m['wins']} wins, {ppo_m['ties']} ties, {ppo_m['losses']} losses"
-                      if "wins" in ppo_m else "")
-            say(f"[ppo] gold score (quality) {sft_m['mean_quality']:.3f} -> {ppo_m['mean_quality']:.3f}, gold reward "
-                f"{sft_m['gold_reward']:.3f} -> {ppo_m['gold_reward']:.3f}, in band {sft_m['frac_in_band']:.2f} -> "
-                f"{ppo_m['frac_in_band']:.2f}, KL to SFT {ppo_m['kl']:.2f} nats")
-            say(f"[ppo] gold win-rate of the PPO model against the SFT model: {ppo_m['win_rate']:.3f} "
-                f"({len(rows)} held-out prompts{counts}; ties count half)")
+        if cfg.final_eval_rows and held_out:
+            report.update(evaluation.compare_with_sft(
+                "ppo", res.task.name, pol, m.reference, m.tokenizer, held_out[: cfg.final_eval_rows], baseline,
+                max_new_tokens=cfg.max_new_tokens, proxy=m.proxy, seed=cfg.seed + 7, say=say))
         loop.write_json(run_dir / "eval.json", report)
     accelerator.wait_for_everyone()
     return final

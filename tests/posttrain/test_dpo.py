@@ -63,7 +63,7 @@ def test_one_forward_over_chosen_and_rejected_equals_two(world):
     from posttrain.logprobs import masked_sum, sequence_logprobs
     from posttrain.models import load_model, load_tokenizer
     from posttrain.preferences import check_pairs, collate_pairs, read_pairs
-    from posttrain.trainers.dpo import pair_logps
+    from posttrain.preferences import pair_logps
 
     model, tok = load_model(world["sft"]), load_tokenizer(world["sft"])
     _, pairs, _ = check_pairs(read_pairs(world["train"])[:6], "t", "error", tok, 256)

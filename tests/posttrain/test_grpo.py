@@ -220,8 +220,8 @@ def test_beta_zero_loads_no_reference_model(sft_model, tmp_path, monkeypatch):
 
 
 def test_gradient_accumulation_and_old_logprobs_match(sft_model, tmp_path):
-    """Micro-batches of 3 rows give the loss and gradient of one forward over the 16 rows, for each aggregation;
-    the rollout engine's log-probs as pi_old give the step a recompute gives."""
+    """Micro-batches of 3 rows give the loss, gradient and logged metrics of one forward over the 16 rows, for each
+    aggregation; the rollout engine's log-probs as pi_old give the step a recompute gives."""
     for agg in ("token_mean", "seq_mean_token_mean", "seq_mean_token_sum_norm"):
         first = []
         for extra in ("micro_batch_size=0", "micro_batch_size=3", "old_logprobs=recompute"):
@@ -232,6 +232,9 @@ def test_gradient_accumulation_and_old_logprobs_match(sft_model, tmp_path):
         for other in first[1:]:
             assert other["loss"] == pytest.approx(first[0]["loss"], rel=1e-4, abs=1e-6), agg
             assert other["grad_norm"] == pytest.approx(first[0]["grad_norm"], rel=1e-3), agg
+            # logged metrics are the whole minibatch's: policy_loss its aggregation, the others token means
+            for k in ("policy_loss", "entropy", "approx_kl", "ratio_mean", "ratio_max", "clip_frac"):
+                assert other[k] == pytest.approx(first[0][k], rel=1e-4, abs=1e-6), (agg, k)
         assert first[0]["ratio_mean"] == pytest.approx(1.0, abs=1e-4)
     got = []  # at temperature 0.7 pi_old is the engine's sampling log-probs: the same as a recompute at T=0.7
     for extra in ("old_logprobs=rollout", "old_logprobs=recompute"):

@@ -170,3 +170,60 @@ def test_build_optimizer_is_fused_and_bumps_versions_so_the_rollout_engine_sees_
     after = generate(model, tok, ["a b"], **greedy)[0].policy_logprobs
     fresh = generate(model, tok, ["a b"], backend="hf", **greedy)[0].policy_logprobs
     assert after != before and max(abs(a - b) for a, b in zip(after, fresh)) < 1e-4
+
+
+def test_optimizer_step_metrics_plain_and_weighted():
+    """Without weights: means over micro-batches; with weights (shares of the batch): weighted means, `_sum`
+    summed, `_max` maxed, and a weight-0 (padding) micro-batch adds to no metric. Hand-computed."""
+    torch.manual_seed(0)
+    model = torch.nn.Linear(2, 1)
+    x = torch.randn(3, 2)
+    metrics = [{"a": 1.0, "n_sum": 2.0, "r_max": 5.0}, {"a": 3.0, "n_sum": 4.0, "r_max": 7.0},
+               {"a": 100.0, "n_sum": 100.0, "r_max": 100.0}]  # the third one: a padding copy
+
+    def loss_fn(i):
+        return model(x[i]).sum() * 0.0, metrics[i]
+
+    def step(mbs, weights=None):
+        opt = loop.build_optimizer(model, 1e-3)
+        sch = loop.build_scheduler(opt, 0, 10, "constant")
+        return loop.optimizer_step(_Acc(), model, opt, sch, mbs, loss_fn, 0.0, 1, weights=weights)
+
+    plain = step([0, 1])
+    assert (plain["a"], plain["n_sum"], plain["r_max"]) == (2.0, 6.0, 7.0)
+    weighted = step([0, 1, 2], weights=[0.25, 0.75, 0.0])
+    assert weighted["a"] == 0.25 * 1.0 + 0.75 * 3.0
+    assert (weighted["n_sum"], weighted["r_max"]) == (6.0, 7.0)
+    with pytest.raises(ValueError, match="2 weights for 3 micro-batches"):
+        step([0, 1, 2], weights=[0.5, 0.5])
+
+
+def test_naming_checkpoint_and_check_weights(tmp_path):
+    ckpt = loop.Checkpointer(tmp_path)
+    model = torch.nn.Linear(2, 1)
+    with pytest.raises(loop.TrainingError, match=r"^boom \(iteration 3; no checkpoint was written yet\)$"):
+        with loop.naming_checkpoint(ckpt, "iteration 3"):
+            raise loop.TrainingError("boom")
+    ckpt.save(2, model)
+    with torch.no_grad():
+        model.weight[0, 0] = float("inf")
+    assert not loop.weights_finite(model)
+    with pytest.raises(loop.TrainingError, match=r"non-finite weights after step 4; .*last good checkpoint: .*step-000002"):
+        with loop.naming_checkpoint(ckpt):
+            loop.check_weights(4, model)
+
+
+def test_resume_run_fresh_missing_and_restored(tmp_path):
+    said = []
+    model = torch.nn.Linear(2, 1)
+    ckpt = loop.Checkpointer(tmp_path)
+    log = loop.MetricsLog(tmp_path / "metrics.jsonl", 10)
+    assert loop.resume_run(ckpt, log, model, resume=False, say=said.append, tag="t")["step"] == 0 and not said
+    assert loop.resume_run(ckpt, log, model, resume=True, say=said.append, tag="t")["step"] == 0
+    assert "resume=true but no checkpoint" in said[-1] and said[-1].endswith("starting from step 0")
+    for s in (1, 2, 3):
+        log.log(s, {"loss": float(s)}, console=False)
+    ckpt.save(2, model, extra={"k": 1})
+    state = loop.resume_run(ckpt, log, model, resume=True, say=said.append, tag="t", unit="iteration")
+    assert state["step"] == 2 and state["extra"] == {"k": 1} and said[-1].endswith("at iteration 2")
+    assert [r["step"] for r in loop.iter_jsonl(tmp_path / "metrics.jsonl")] == [1, 2]

@@ -318,6 +318,33 @@ def test_fixed_kl_coefficient_stays_and_gold_reward_option_needs_no_reward_model
     assert not (out / "tiny-summarize" / "rm").exists()
 
 
+def test_gold_reward_on_another_task_logs_that_tasks_gold_metrics(tmp_path, capsys):
+    """reward=gold on tiny-math: the evaluations log the task's GOLD_METRICS (gold/accuracy, gold/length_chars), not
+    tiny-summarize's quality / in_band (whose keys the first evaluation used to look up: a KeyError), and the final
+    comparison with the SFT model is written to eval.json."""
+    from posttrain.models import bootstrap
+    from posttrain.tasks import math as math_task
+
+    out = tmp_path / "math"
+    bootstrap("tiny", math_task.corpus(200, 0), out / "tiny-math" / "sft" / "final", vocab_size=384, seed=0,
+              max_length=256, split_digits=True)  # the stage finds its "SFT model" and never runs SFT
+    assert main(["ppo", "--recipe", "tiny-math", f"run.output_dir={out}", "reward=gold", "value_init=policy",
+                 "rollout_batch_size=8", "minibatch_size=4", "ppo_epochs=1", "max_steps=2", "max_new_tokens=8",
+                 "reward_norm=none", "eval_every=1", "eval_rows=4", "final_eval_rows=4", "save_every=0",
+                 "task.n_train=32", "task.n_eval=8", "run.quiet=true", "run.threads=1"]) == 0
+    run = out / "tiny-math" / "ppo"
+    evals = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines() if "gold/win_rate" in l]
+    assert [r["step"] for r in evals] == [0, 1, 2]
+    for r in evals:
+        assert {"gold/reward", "gold/accuracy", "gold/length_chars", "gold/win_rate", "kl"} <= set(r), r
+        assert 0.0 <= r["gold/accuracy"] <= 1.0 and "gold/quality" not in r and "proxy/reward" not in r
+    ev = json.loads((run / "eval.json").read_text())
+    assert ev["sft"]["win_rate"] == 0.5 and 0.0 <= ev["ppo"]["accuracy"] <= 1.0 and len(ev["samples"]) == 4
+    text = capsys.readouterr().out
+    assert "accuracy" in text and "gold win-rate of the PPO model against the SFT model" in text
+    assert (run / "final" / "config.json").is_file()
+
+
 def test_reward_model_path_and_value_from_the_reward_model(world, tmp_path):
     out = tmp_path / "rm"
     assert main(_args(world, out, "reward=rm", f"reward_model={world['rm']}", "value_init=reward",

@@ -1,0 +1,327 @@
+"""Verifiable problems: prompts with a verifier reference, checked before any model loads; the verifier (and/or
+reward-model) reward of a run; held-out greedy accuracy against the SFT model.
+
+CPU: `python -c "import posttrain.problems"`; exercised through GRPO (tests/posttrain/trainers/test_grpo.py).
+
+- `split_rows` / `check_problems`: rows of a problem file (schema "verifiable") or of the task's split; a row
+  without a reference (`row_reference`: `answer`, else meta.answer / meta.reference) stops naming its row
+  (on_bad_rows=error) or is skipped with a count.
+- `build_verifier`: a registry spec (auto: the rows' `verifier` field, else the task's `VERIFIER`); `preflight`
+  scores the worked solutions of the first PREFLIGHT_ROWS rows, so a verifier that raises stops the run
+  before anything trains (one that scores them below 1 is reported, not fatal).
+- `tokenize_problems`: prompts rendered and tokenized once (`posttrain.chat`), too-long ones dropped with a count.
+- `build_reward` -> `Reward`: the scorers of `posttrain.scoring` (verifier, reward model, or both weighted).
+- `score_groups` / `gather_groups`: K samples per problem scored as `Group`s (identical completions of a problem
+  scored once), gathered over processes in global order; a verifier that raised everywhere stops the run.
+- `HeldOut`: greedy completions of held-out problems scored by the verifier (eval/accuracy is the pass rate of
+  the FIRST term of a composition) and the reward model; the SFT baseline is measured once and kept for resume.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from posttrain import loop, sharding
+from posttrain.errors import ConfigError
+
+PREFLIGHT_ROWS = 8  # worked solutions scored before training (a broken verifier stops there)
+
+
+@dataclass
+class Problem:
+    """One prompt with its verifier reference; `key` (its row index) seeds its samples."""
+
+    prompt: str
+    reference: Any
+    key: int
+    prompt_ids: list[int] = field(default_factory=list)
+
+
+def _present(value: Any) -> bool:
+    if isinstance(value, str):
+        return bool(value.strip())
+    if isinstance(value, (dict, list)):
+        return bool(value)
+    return value is not None
+
+
+def row_reference(row: dict[str, Any]) -> Any:
+    """The verifier reference of a row: `answer`, else meta.answer / meta.reference; None when missing or empty."""
+    meta = row.get("meta") if isinstance(row.get("meta"), dict) else {}
+    for value in (row.get("answer"), meta.get("answer"), meta.get("reference")):
+        if _present(value):
+            return value
+    return None
+
+
+def build_verifier(spec: str, options: dict[str, Any], task, rows: list[dict[str, Any]], *, stage: str = "grpo"):
+    """The Verifier instance of `spec` (`<stage>.verifier`; auto: the rows' `verifier` field, else the task's
+    VERIFIER; none: None) with its keyword `options`; one-line ConfigErrors naming the key."""
+    from verifiers.registry import get_verifier
+
+    spec = spec.strip()
+    if spec == "none":
+        return None
+    if spec == "auto":
+        named = sorted({str(r["verifier"]) for r in rows if r.get("verifier")})
+        if len(named) > 1:
+            raise ConfigError(f"{stage}.verifier=auto: the problems name several verifiers ({', '.join(named)}); "
+                              f"set {stage}.verifier to one spec (e.g. logic dispatches on the reference's family)")
+        spec = named[0] if named else (task.VERIFIER or "")
+        if not spec:
+            raise ConfigError(f"{stage}.verifier=auto but task {task.NAME!r} names no verifier "
+                              f"(VERIFIER); set {stage}.verifier, e.g. {stage}.verifier=math")
+    try:
+        return get_verifier(spec, **options)
+    except (ValueError, ImportError, TypeError) as e:
+        raise ConfigError(f"{stage}.verifier: {e}") from None
+
+
+def check_problems(rows: list[dict[str, Any]], source: str, on_bad: str, *,
+                   stage: str = "grpo") -> tuple[list[Problem], list[int]]:
+    """Problems of `rows` (1-based row numbers in errors); rows without a reference stop or are skipped."""
+    problems, skipped = [], []
+    for i, row in enumerate(rows):
+        ref = row_reference(row)
+        if ref is None:
+            if on_bad == "error":
+                raise ConfigError(f"{source}: row {i + 1}: no reference answer for the verifier (an 'answer' field, "
+                                  f"or meta.answer / meta.reference); fix the row or set {stage}.on_bad_rows=skip")
+            skipped.append(i + 1)
+            continue
+        problems.append(Problem(row["prompt"], ref, i))
+    return problems, skipped
+
+
+def preflight(verifier, pool, rows: list[dict[str, Any]], source: str, say, *, stage: str = "grpo") -> None:
+    """Score the worked solutions of the first rows: a verifier that raises stops here, with the row."""
+    from verifiers.runner import VerifierError
+
+    rows = [r for r in rows[:PREFLIGHT_ROWS] if isinstance(r.get("completion"), str) and row_reference(r) is not None]
+    if not rows:
+        return
+    try:
+        verdicts = pool.score(verifier, [r["completion"] for r in rows], [row_reference(r) for r in rows])
+    except VerifierError as e:
+        where = f"the worked solution of {source} row {e.index + 1}" if e.index is not None else "loading"
+        raise ConfigError(f"{stage}.verifier {verifier.name!r} raised {e.exc_type} on {where}: {e.message} "
+                          "(a bug in the verifier or a malformed reference; nothing was trained)") from None
+    low = [(i, v) for i, v in enumerate(verdicts) if v.score < 1.0]
+    if low:
+        i, v = low[0]
+        say(f"[{stage}] note: the verifier scores {len(low)} of {len(rows)} worked solutions below 1 (e.g. {source} "
+            f"row {i + 1}: {v.score:.2f}, {v.reason!r}); check that the verifier matches the task's answer format")
+
+
+def split_rows(task_cfg, split: str, file: str | None) -> tuple[list[dict], str]:
+    """The rows of a problem file (e.g. grpo.train_file / eval_file), else of the task's split (the recipe's
+    `task:` section); and where they come from."""
+    from posttrain import tasks
+    from posttrain.data import load_rows
+
+    if file:
+        return [dict(r) for r in load_rows(file, "verifiable")], file
+    return tasks.load_split(task_cfg, split), f"task {task_cfg.name} ({split})"
+
+
+def tokenize_problems(tokenizer, ps: list[Problem], what: str, max_new_tokens: int, max_length: int,
+                      say, *, stage: str = "grpo") -> list[Problem]:
+    """Prompts tokenized once (the engine takes ids; the chat template when there is one); a prompt longer than
+    max_length - max_new_tokens is dropped, with a count."""
+    from posttrain.chat import encode_prompts
+
+    kept = []
+    for p, x in zip(ps, encode_prompts(tokenizer, [p.prompt for p in ps])):
+        if len(x) + max_new_tokens <= max_length:
+            p.prompt_ids = list(x)
+            kept.append(p)
+    if len(kept) < len(ps):
+        say(f"[{stage}] dropped {len(ps) - len(kept)}/{len(ps)} {what} prompts longer than model.max_length="
+            f"{max_length} - max_new_tokens={max_new_tokens}")
+    return kept
+
+
+@dataclass
+class Reward:
+    """The run's reward, through `posttrain.scoring`: the verifier (None: reward model only) and its scorers."""
+
+    verifier: Any
+    scorer: Any  # scores training completions: a VerifierScorer, a RewardModelScorer or both in a WeightedScorer
+    eval_scorer: Any  # the verifier's, errors scored 0 (held-out evaluation); None without a verifier
+    rm_scorer: Any  # None without a reward model
+    verifier_parts: set[str]  # reward parts that are verifier verdicts (logged as pass/<part> too)
+    correctness: str | None  # the first term of a composition: eval/accuracy's part
+    prefix: str  # "verifier/" when a WeightedScorer prefixes its scorers' parts
+
+
+def build_reward(verifier, pool, rm_dir: Path | None, device, *, timeout_s: float = 0.0, on_error: str = "zero",
+                 verifier_weight: float = 1.0, reward_model_weight: float = 1.0) -> Reward:
+    """The verifier (None: none) and / or the reward model at `rm_dir` (None: none) as one reward: checks in `pool`
+    under `timeout_s` (0: the verifier's own limit); a check that raises scores 0 (on_error "zero") or raises
+    ("stop"); both weighted when both are given."""
+    from posttrain.scoring import RewardModelScorer, VerifierScorer, WeightedScorer
+
+    timeout = timeout_s or None
+    vscorer = eval_scorer = None
+    if verifier is not None:
+        vscorer = VerifierScorer(verifier, pool=pool, timeout_s=timeout, name="verifier",
+                                 on_error="zero" if on_error == "zero" else "raise")
+        eval_scorer = VerifierScorer(verifier, pool=pool, timeout_s=timeout, name="verifier", on_error="zero")
+    rm_scorer = RewardModelScorer(rm_dir, device=device, name="rm") if rm_dir is not None else None
+    if vscorer is not None and rm_scorer is not None:
+        scorer = WeightedScorer([(vscorer, verifier_weight), (rm_scorer, reward_model_weight)])
+    else:
+        scorer = vscorer if vscorer is not None else rm_scorer
+    labels = [label for label, _, _ in getattr(verifier, "parts", [])]  # a composition's terms
+    prefix = "verifier/" if rm_scorer is not None else ""
+    return Reward(verifier, scorer, eval_scorer, rm_scorer,
+                  ({"verifier"} | {prefix + p for p in labels}) if verifier is not None else set(),
+                  labels[0] if labels else None, prefix)
+
+
+# ----------------------------------------------------------------------------- groups of samples
+@dataclass
+class Group:
+    """One prompt's K samples, scored."""
+
+    problem: Problem
+    rollouts: list  # list[Rollout], K
+    rewards: list[float]
+    reasons: list[str]
+    parts: dict[str, list[float]]  # reward part -> K values
+
+
+def score_groups(reward: Reward, ps: list[Problem], out: list, K: int,
+                 step: int) -> tuple[list[Group], str | None, int]:
+    """This process's samples scored: (groups, the message of a verifier error under on_verifier_error=stop, the
+    number of distinct completions scored). Identical completions of a prompt are scored once (verifiers and
+    reward models are deterministic; a confident policy samples many duplicates, and a sandboxed check is costly)."""
+    from verifiers.runner import VerifierError
+
+    if not ps:
+        return [], None, 0
+    first: dict[tuple[int, str], int] = {}
+    slot = [first.setdefault((ps[i // K].key, r.text), len(first)) for i, r in enumerate(out)]
+    uniq = list(first)  # (problem key, text) in first-seen order
+    by_key = {p.key: p for p in ps}
+    try:
+        su = reward.scorer.score([by_key[k].prompt for k, _ in uniq], [t for _, t in uniq],
+                                 [by_key[k].reference for k, _ in uniq] if reward.verifier is not None else None)
+    except VerifierError as e:  # on_verifier_error=stop: raised after the gather, by every process
+        row = uniq[e.index][0] + 1 if e.index is not None and reward.rm_scorer is None else "?"
+        return [], (f"verifier {reward.verifier.name!r} raised {e.exc_type} at step {step + 1} on a completion of "
+                    f"training problem row {row}: {e.message} (on_verifier_error=stop)"), 0
+    groups = []
+    for g, p in enumerate(ps):
+        sl = [slot[g * K + j] for j in range(K)]
+        groups.append(Group(p, out[g * K:(g + 1) * K], [su.rewards[i] for i in sl], [su.reasons[i] for i in sl],
+                            {k: [v[i] for i in sl] for k, v in su.parts.items()}))
+    return groups, None, len(uniq)
+
+
+def gather_groups(reward: Reward, accelerator, mine: list[int], scored: tuple[list[Group], str | None, int],
+                  step: int) -> tuple[list[Group], int]:
+    """Every process's `score_groups` of a round: the groups in global order, the distinct completions scored.
+    A verifier error under on_verifier_error=stop on any process stops every process; so does a round where
+    every check raised (that reward carries no signal)."""
+    groups, error, n = scored
+    shards = sharding.gather_rows(accelerator, [(list(zip(mine, groups)), error, n)], [accelerator.process_index])
+    errors = [e for _, e, _ in shards if e]
+    if errors:
+        raise loop.TrainingError(errors[0])
+    groups = [g for _, g in sorted((x for sh, _, _ in shards for x in sh), key=lambda t: t[0])]
+    reasons = [x for g in groups for x in g.reasons]
+    if reward.verifier is not None and all("verifier error:" in x for x in reasons):
+        raise loop.TrainingError(f"verifier {reward.verifier.name!r} raised on every completion of step {step + 1} "
+                                 f"({reasons[0]}); the reward is broken")
+    return groups, sum(n for _, _, n in shards)
+
+
+# ----------------------------------------------------------------------------- held-out evaluation
+@dataclass
+class HeldOut:
+    """Greedy completions of held-out problems, scored by the verifier (and the reward model): n_eval of them every
+    eval_every steps, n_final before and after training (the SFT vs trained comparison)."""
+
+    problems: list[Problem]
+    reward: Reward
+    max_new_tokens: int
+    n_eval: int
+    n_final: int
+    stage: str = "grpo"
+
+    def evaluate(self, policy, tokenizer, n: int) -> dict[str, Any]:
+        """Greedy completions of the first n problems: texts, lengths, truncation, verifier and reward-model scores."""
+        from posttrain.rollout import SamplingParams, generate
+
+        ps = self.problems[:n]
+        rollouts = generate(policy, tokenizer, [p.prompt_ids for p in ps],
+                            SamplingParams(n=1, max_new_tokens=self.max_new_tokens, greedy=True),
+                            prompt_keys=[p.key for p in ps])
+        texts, prompts = [r.text for r in rollouts], [p.prompt for p in ps]
+        ev: dict[str, Any] = {"texts": texts, "lengths": [len(r.completion_ids) for r in rollouts],
+                              "truncated": [r.finish_reason == "length" for r in rollouts]}
+        if self.reward.eval_scorer is not None:
+            sr = self.reward.eval_scorer.score(prompts, texts, [p.reference for p in ps])
+            ev.update(reward=sr.rewards, parts=sr.parts, reasons=sr.reasons)
+        if self.reward.rm_scorer is not None:
+            ev["rm"] = self.reward.rm_scorer.score(prompts, texts).rewards
+        return ev
+
+    def summarise(self, ev: dict[str, Any], n: int) -> dict[str, float]:
+        """eval/* metrics of the first n rows of an `evaluate` result."""
+        n = min(n, len(ev["texts"]))
+        if n == 0:
+            return {}
+        m = {"eval/length": sum(ev["lengths"][:n]) / n, "eval/truncated": sum(ev["truncated"][:n]) / n}
+        if "reward" in ev:
+            m["eval/reward"] = sum(ev["reward"][:n]) / n
+            m["eval/pass"] = sum(x >= 1.0 for x in ev["reward"][:n]) / n
+            for label, values in ev["parts"].items():
+                if label != "verifier":
+                    m[f"eval/pass/{label}"] = sum(x >= 1.0 for x in values[:n]) / n
+            src = ev["parts"][self.reward.correctness] if self.reward.correctness else ev["reward"]
+            m["eval/accuracy"] = sum(x >= 1.0 for x in src[:n]) / n
+        if "rm" in ev:
+            m["eval/rm"] = sum(ev["rm"][:n]) / n
+        return m
+
+    def samples(self, ev: dict[str, Any]) -> list[dict[str, str]]:
+        return [{"prompt": p.prompt, "completion": t} for p, t in zip(self.problems[:10], ev["texts"])]
+
+    def sft_baseline(self, policy, tokenizer, path: Path, start: int, metrics: loop.MetricsLog, say) -> dict:
+        """The SFT model's numbers: measured before step 1 (logged at step 0), read back from `path` on resume."""
+        if not (self.n_final or self.n_eval):
+            return {}
+        if start > 0:
+            return json.loads(path.read_text()) if path.is_file() else {}
+        t0 = time.time()
+        ev = self.evaluate(policy, tokenizer, max(self.n_final, self.n_eval))
+        baseline = {"metrics": self.summarise(ev, self.n_final or self.n_eval),
+                    "eval_metrics": self.summarise(ev, self.n_eval), "samples": self.samples(ev)}
+        loop.write_json(path, baseline)
+        if self.n_eval:
+            metrics.log(0, baseline["eval_metrics"], console=False)
+        key = "eval/accuracy" if "eval/accuracy" in baseline["metrics"] else "eval/rm"
+        say(f"[{self.stage}] SFT model, greedy, {self.n_final or self.n_eval} held-out problems: {key.removeprefix('eval/')} "
+            f"{baseline['metrics'][key]:.3f} ({time.time() - t0:.1f}s)")
+        return baseline
+
+    def compare(self, policy, tokenizer, baseline: dict, metrics: loop.MetricsLog, step: int, say) -> dict:
+        """After training: the trained policy's numbers against the SFT model's (eval.json's rows, sft, grpo)."""
+        if not (self.n_final or self.n_eval):
+            return {}
+        n = self.n_final or self.n_eval
+        ev = self.evaluate(policy, tokenizer, max(n, self.n_eval))
+        after = self.summarise(ev, n)
+        if self.n_eval:
+            metrics.log(step, self.summarise(ev, self.n_eval), console=False)
+        before = baseline.get("metrics", {})
+        key = "eval/accuracy" if "eval/accuracy" in after else "eval/rm"
+        was = f"SFT {before[key]:.3f} -> " if key in before else ""
+        say(f"[{self.stage}] held-out greedy {key.removeprefix('eval/')} on {n} problems: {was}{self.stage.upper()} "
+            f"{after[key]:.3f}")
+        return {"rows": n, "sft": before, self.stage: after, "samples": self.samples(ev)}

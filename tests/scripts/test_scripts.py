@@ -1,0 +1,74 @@
+"""scripts/*.py: each imports (without running) and answers --help; bench.py uses the library's API only.
+
+"Library API" here: bench.py imports nothing from `posttrain.trainers` (a trainer is run through the CLI,
+`posttrain.cli.main` / `STAGES`, as a user runs it) and no underscore name from any posttrain module, so a
+trainer's internals can change without the benchmark measuring something else.
+"""
+from __future__ import annotations
+
+import ast
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPTS = Path(__file__).resolve().parents[2] / "scripts"
+ALL = sorted(p for p in SCRIPTS.glob("*.py"))
+
+
+def _load(path: Path):
+    """Import a script as `python scripts/NAME.py` would see it (its folder first on sys.path), without running it."""
+    spec = importlib.util.spec_from_file_location(f"_script_{path.stem}", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(path.parent))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(path.parent))
+    return module
+
+
+def test_every_script_is_here():
+    assert {p.name for p in ALL} >= {"bench.py", "bench_verifiers.py", "reproduce_e6.py", "reproduce_e7.py",
+                                      "stage_runner.py"}
+
+
+@pytest.mark.parametrize("path", ALL, ids=lambda p: p.name)
+def test_script_imports_without_running(path):
+    module = _load(path)
+    assert module.__doc__ and module.__doc__.strip(), f"{path.name} has no docstring saying what it does"
+    if path.name != "stage_runner.py":  # a helper module of the reproductions, not a command
+        assert callable(getattr(module, "main", None)), f"{path.name} has no main()"
+
+
+@pytest.mark.parametrize("name", ["bench.py", "bench_verifiers.py", "reproduce_e6.py", "reproduce_e7.py"])
+def test_script_help(name):
+    out = subprocess.run([sys.executable, str(SCRIPTS / name), "--help"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "usage" in out.stdout.lower()
+
+
+def _posttrain_imports(path: Path) -> list[tuple[str, str | None]]:
+    """(module, name) for every import of posttrain in `path` (name None for `import module`)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found += [(a.name, None) for a in node.names if a.name.split(".")[0] == "posttrain"]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "posttrain":
+            found += [(node.module, a.name) for a in node.names]
+    return found
+
+
+def test_bench_uses_library_api_only():
+    imports = _posttrain_imports(SCRIPTS / "bench.py")
+    assert imports, "bench.py imports nothing of posttrain?"
+    bad = [f"{m}{'.' + n if n else ''}" for m, n in imports
+           if m.startswith("posttrain.trainers") or (n or "").startswith("_") or
+           any(part.startswith("_") for part in m.split("."))]
+    assert not bad, f"scripts/bench.py reaches into trainer internals or private names: {bad}"
+    for m, n in imports:  # and every name it imports exists (a function, class or submodule)
+        module = importlib.import_module(m)
+        assert n is None or hasattr(module, n) or importlib.util.find_spec(f"{m}.{n}") is not None, \
+            f"bench.py imports {m}.{n}, which does not exist"
