@@ -319,12 +319,12 @@ def grpo_loss(cfg: GRPOConfig, model, mb: dict[str, torch.Tensor], scale: float,
 def micro_batch_loss(cfg: GRPOConfig, model, world: int, with_entropy: bool,
                      micro_batch: tuple[dict, float, float]) -> tuple[torch.Tensor, dict[str, float]]:
     """`grpo_loss` of one of `sharding.micro_batches`, scaled to its loss share times W (DDP averages gradients).
-    `loop.optimizer_step` weighs the metrics by the loss-token shares (token means over the whole minibatch);
-    policy_loss is an aggregation's value, so it is rescaled to weigh by the loss share instead."""
-    mb, share, tokens = micro_batch
+    `loop.optimizer_step` weighs the token-mean metrics by the loss-token shares; the policy loss is reported as
+    this micro-batch's part of the minibatch's aggregation (`policy_loss_sum`: summed over micro-batches and
+    processes, it is the minibatch's policy loss)."""
+    mb, share, _ = micro_batch
     loss, m = grpo_loss(cfg, model, mb, share * world, with_entropy)
-    if tokens:  # 0: a padding micro-batch, weight 0
-        m["policy_loss"] *= share / tokens
+    m["policy_loss_sum"] = m.pop("policy_loss") * share
     return loss, m  # a non-finite loss on any process stops every process (loop.optimizer_step)
 
 
@@ -349,7 +349,7 @@ def update(cfg: GRPOConfig, accelerator, model, optimizer, scheduler, rows: dict
                                       step + 1, weights=[tokens for _, _, tokens in mbs])
             for k, v in out.items():
                 upd[k].append(v)
-    m = {k: (max(v) if k == "ratio_max" else sum(v) / len(v)) for k, v in upd.items()}
+    m = {k.removesuffix("_sum"): (max(v) if k == "ratio_max" else sum(v) / len(v)) for k, v in upd.items()}
     m.update({"rows/trained": float(len(usable)), "updates": float(len(upd.get("loss", [])))})
     m.setdefault("loss", 0.0)
     return m
