@@ -7,6 +7,8 @@
 - `tiny_lm(task, vocab_size=, max_length=, **bootstrap_options)`: the directory of a random-init `tiny` preset
   with a tokenizer trained on the task's corpus, built once per session and settings (read-only: runs write
   their own directories).
+- `tiny_rm(task, ...)`: a "reward model" made from that tiny model (its transformer under a one-output head with
+  visible outputs, seeded), saved with the tokenizer; built once per session and settings.
 - `write_jsonl(path, rows)`: rows as a JSONL file; returns the path.
 """
 from __future__ import annotations
@@ -46,6 +48,33 @@ def tiny_lm(tmp_path_factory):
             out = tmp_path_factory.mktemp("tiny-lm") / "model"
             bootstrap("tiny", tasks.get_task(task).corpus(200, 0), out, vocab_size=vocab_size, seed=0,
                       max_length=max_length, **options)
+            built[key] = out
+        return built[key]
+
+    return build
+
+
+@pytest.fixture(scope="session")
+def tiny_rm(tmp_path_factory, tiny_lm):
+    built: dict[tuple, Path] = {}
+
+    def build(task: str = "tiny-summarize", *, vocab_size: int = 384, max_length: int = 256, std: float = 0.5,
+              seed: int = 1) -> Path:
+        key = (task, vocab_size, max_length, std, seed)
+        if key not in built:
+            from transformers import AutoModelForSequenceClassification
+
+            from posttrain.models import load_tokenizer
+
+            lm = tiny_lm(task, vocab_size=vocab_size, max_length=max_length)
+            tok = load_tokenizer(lm)
+            torch.manual_seed(seed)
+            rm = AutoModelForSequenceClassification.from_pretrained(str(lm), num_labels=1)
+            rm.config.pad_token_id = tok.pad_token_id
+            torch.nn.init.normal_(rm.score.weight, std=std)  # a head with visible outputs
+            out = tmp_path_factory.mktemp("tiny-rm") / "rm"
+            rm.save_pretrained(out)
+            tok.save_pretrained(out)
             built[key] = out
         return built[key]
 

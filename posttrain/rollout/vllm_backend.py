@@ -8,7 +8,7 @@ GPU:        pip install vllm
 Multi-GPU:  accelerate launch --num_processes 8 -m posttrain grpo ... rollout.backend=vllm  (one engine per process,
             each on its own GPU, TP = 1; see "Several processes")
 
-UNTESTED ON A REAL vLLM. This machine has no GPU and vLLM is not installed. What tests/posttrain/test_backends.py
+UNTESTED ON A REAL vLLM. This machine has no GPU and vLLM is not installed. What tests/posttrain/rollout/test_backends.py
 checks, with a stand-in `vllm` module of a few lines, is OUR side: the mapping of SamplingParams, the
 conversion of vLLM's RequestOutput / CompletionOutput into Rollout records, the weight export (LoRA merged,
 names as in the Hugging Face checkpoint), that a push happens after every policy update, that GRPO then

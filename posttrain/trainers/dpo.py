@@ -6,7 +6,7 @@ Multi-GPU:  accelerate launch --num_processes 8 -m posttrain dpo --recipe tiny-s
             --recipe tiny-summarize run.threads=1; tested in tests/posttrain/test_distributed.py)
 LoRA:       posttrain dpo --recipe tiny-summarize lora.enabled=true   (the reference: the policy, adapters off)
 
-Implementation details it follows, each with its source and flag (tested in tests/posttrain/test_dpo.py):
+Implementation details it follows, each with its source and flag (tested in tests/posttrain/trainers/test_dpo.py):
  1. DPO (Rafailov et al. 2023, eq. 7; `loss_type=sigmoid`, `beta`): -log sigmoid(beta h), h the chosen minus
     the rejected log-ratio to the reference (`losses.dpo_loss`); log-probs summed over completion tokens + eos.
  2. Conservative DPO label smoothing (Mitchell 2023; TRL's label_smoothing; `label_smoothing`, sigmoid only).

@@ -8,7 +8,7 @@ LoRA:       posttrain ppo --recipe tiny-summarize lora.enabled=true
 
 Implementation details, numbered as in Huang et al. ("The N Implementation Details of RLHF with PPO", 2022; "The N+
 Implementation Details of RLHF with PPO: A Case Study on TL;DR Summarization", 2024); each flag's effect is tested in
-tests/posttrain/test_ppo.py (the losses and GAE themselves in test_losses.py and test_advantages.py):
+tests/posttrain/trainers/test_ppo.py (the losses and GAE themselves in test_losses.py and test_advantages.py):
  1. Reward normalisation (`reward_norm`): "init" to mean 0 / std 1 of `reward_norm_prompts` SFT samples measured
     before training (lm-human-preferences, Ziegler et al. 2019 §2.2); "batch": each batch whitened; "none".
  2. Reward clipping (`reward_clip`): normalised scores clipped to [-c, c] (0: off).

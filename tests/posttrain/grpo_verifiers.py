@@ -1,4 +1,4 @@
-"""Verifiers for tests/posttrain/test_grpo.py, loaded as `tests/posttrain/grpo_verifiers.py:NAME` (worker processes
+"""Verifiers for tests/posttrain/trainers/test_grpo.py (and rollout/test_backends.py, test_real_models.py), loaded as `tests/posttrain/grpo_verifiers.py:NAME` (worker processes
 import this file by path). Deterministic: whatever they do depends only on the completion text."""
 import os
 import time

@@ -72,27 +72,8 @@ PPO_ARGS = ["--recipe", "tiny-summarize", "run.threads=1", "reward=rm", "value_i
             "final_eval_rows=4", "save_every=3", "lr=1e-3", "value_lr=1e-3", "task.n_train=64", "task.n_eval=16"]
 
 
-def _ppo_world(root: Path) -> dict[str, Path]:
-    """A random tiny 'SFT' model and a 'reward model' made from it (head with visible outputs), as test_ppo.py."""
-    import torch
-    from transformers import AutoModelForSequenceClassification
-
-    from posttrain.models import bootstrap, load_tokenizer
-    from posttrain.tasks import summarize
-
-    bootstrap("tiny", summarize.corpus(200, 0), root / "sft", vocab_size=384, seed=0, max_length=256)
-    tok = load_tokenizer(root / "sft")
-    torch.manual_seed(1)
-    rm = AutoModelForSequenceClassification.from_pretrained(str(root / "sft"), num_labels=1)
-    rm.config.pad_token_id = tok.pad_token_id
-    torch.nn.init.normal_(rm.score.weight, std=0.5)
-    rm.save_pretrained(root / "rm")
-    tok.save_pretrained(root / "rm")
-    return {"sft": root / "sft", "rm": root / "rm"}
-
-
 @pytest.mark.slow
-def test_ppo_two_processes_match_one_process(tmp_path):
+def test_ppo_two_processes_match_one_process(tmp_path, tiny_lm, tiny_rm):
     """PPO under 2 processes == 1 process at the same global rollout batch and seed. Rollouts are sharded by
     prompt key (counter-based sampling), so they are the same samples: lengths, EOS counts and clip counts
     equal exactly. Reward normalisation (init), the adaptive KL coefficient, advantage whitening and the
@@ -104,7 +85,7 @@ def test_ppo_two_processes_match_one_process(tmp_path):
 
     from safetensors.torch import load_file
 
-    world = _ppo_world(tmp_path / "world")
+    world = {"sft": tiny_lm("tiny-summarize"), "rm": tiny_rm("tiny-summarize")}  # the world of trainers/test_ppo.py
     runs = {}
     for name, launch in (("one", []), ("two", ["-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes",
                                               "2", "--num_machines", "1", "--mixed_precision", "no",
@@ -146,7 +127,7 @@ def coin(completion, reference):
 
 
 @pytest.mark.slow
-def test_grpo_two_processes_match_one_process(tmp_path):
+def test_grpo_two_processes_match_one_process(tmp_path, tiny_lm):
     """GRPO under 2 processes == 1 process at the same global batch and seed. P = 3 prompts (split 2 + 1), each
     group of K = 4 whole on one process; then gathered, so dynamic sampling's resample decision, the
     zero-variance filter, REINFORCE++'s batch normalisation and the metrics are global; the reference log-probs
@@ -161,11 +142,7 @@ def test_grpo_two_processes_match_one_process(tmp_path):
 
     from safetensors.torch import load_file
 
-    from posttrain.models import bootstrap
-    from posttrain.tasks import countdown
-
-    bootstrap("tiny", countdown.corpus(200, 0), tmp_path / "sft", vocab_size=256, seed=0, max_length=128,
-              split_digits=True)
+    sft = tiny_lm("tiny-countdown", vocab_size=256, max_length=128, split_digits=True)
     (tmp_path / "coin.py").write_text(COIN)
     args = ["--recipe", "tiny-countdown", "run.threads=1", f"verifier={tmp_path / 'coin.py'}:coin",
             "verifier_workers=0", "prompts_per_step=3", "group_size=4", "max_new_tokens=12", "max_steps=3",
@@ -177,7 +154,7 @@ def test_grpo_two_processes_match_one_process(tmp_path):
                                               "2", "--num_machines", "1", "--mixed_precision", "no",
                                               "--dynamo_backend", "no"])):
         out = tmp_path / name
-        shutil.copytree(tmp_path / "sft", out / "tiny-countdown" / "sft" / "final")  # never runs SFT
+        shutil.copytree(sft, out / "tiny-countdown" / "sft" / "final")  # never runs SFT
         text = _run([sys.executable, *launch, "-m", "posttrain", "grpo", *args, f"run.output_dir={out}"], tmp_path)
         assert f"{1 if name == 'one' else 2} process(es)" in text
         assert text.count("[grpo] SFT model, greedy") == text.count("held-out greedy accuracy") == 1  # main only

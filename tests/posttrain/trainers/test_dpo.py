@@ -10,14 +10,6 @@ from posttrain.cli import main
 from posttrain.tasks import summarize
 
 
-@pytest.fixture(autouse=True)
-def _keep_torch_threads():
-    """The runs here use run.threads=1 (light on shared CPUs); give later tests their thread count back."""
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
-
-
 def _pairs(n: int, seed: int, split: str = "train") -> list[dict]:
     """chosen: the concise summary; rejected: the same plus a sentence (a systematic, learnable contrast)."""
     rows = summarize.make_examples(n, seed, split)
@@ -32,13 +24,10 @@ def _write(path: Path, rows: list[dict]) -> Path:
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory):
+def world(tmp_path_factory, tiny_lm):
     """A random tiny 'SFT' model (tokenizer trained on the task) and train / held-out preference files."""
-    from posttrain.models import bootstrap
-
     root = tmp_path_factory.mktemp("dpo")
-    bootstrap("tiny", summarize.corpus(200, 0), root / "sft", vocab_size=384, seed=0, max_length=256)
-    return {"sft": root / "sft", "train": _write(root / "train.jsonl", _pairs(160, 0)),
+    return {"sft": tiny_lm("tiny-summarize", max_length=256), "train": _write(root / "train.jsonl", _pairs(160, 0)),
             "eval": _write(root / "eval.jsonl", _pairs(32, 0, "eval"))}
 
 

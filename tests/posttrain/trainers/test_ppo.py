@@ -13,35 +13,17 @@ from posttrain.scoring import ScoreResult
 from posttrain.tasks import summarize
 
 
-@pytest.fixture(autouse=True)
-def _keep_torch_threads():
-    """The runs here use run.threads=1 (light on shared CPUs); give later tests their thread count back."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory):
+def world(tmp_path_factory, tiny_lm, tiny_rm):
     """A random tiny 'SFT' model (tokenizer trained on the task) and a 'reward model' made from it."""
-    from transformers import AutoModelForSequenceClassification
-
-    from posttrain.models import bootstrap, load_tokenizer
-
     root = tmp_path_factory.mktemp("ppo")
-    bootstrap("tiny", summarize.corpus(200, 0), root / "sft", vocab_size=384, seed=0, max_length=256)
-    tok = load_tokenizer(root / "sft")
-    torch.manual_seed(1)
-    rm = AutoModelForSequenceClassification.from_pretrained(str(root / "sft"), num_labels=1)
-    rm.config.pad_token_id = tok.pad_token_id
-    torch.nn.init.normal_(rm.score.weight, std=0.5)  # a head with visible outputs
-    rm.save_pretrained(root / "rm")
-    tok.save_pretrained(root / "rm")
     short = root / "short.jsonl"  # 5-word documents: cheap iterations for the learning test
     short.write_text("".join(json.dumps({"prompt": "Document: " + " ".join(r["prompt"].split()[1:6]) + "\nSummary:",
                                          "completion": " x"}) + "\n" for r in summarize.make_examples(64, 0, "train")))
-    return {"root": root, "sft": root / "sft", "rm": root / "rm", "short": short}
+    return {"root": root, "sft": tiny_lm("tiny-summarize", max_length=256), "rm": tiny_rm("tiny-summarize"), "short": short}
 
 
 class VowelScorer:

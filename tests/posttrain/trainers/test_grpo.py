@@ -12,26 +12,13 @@ from posttrain.cli import main
 from posttrain.tasks import countdown
 
 HERE = Path(__file__).resolve().parent
-VERIFIERS = HERE / "grpo_verifiers.py"
-
-
-@pytest.fixture(autouse=True)
-def _keep_torch_threads():
-    """The runs here use run.threads=1 (light on shared CPUs); give later tests their thread count back."""
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
+VERIFIERS = HERE.parent / "grpo_verifiers.py"  # shared with rollout/test_backends.py and test_real_models.py
 
 
 @pytest.fixture(scope="module")
-def sft_model(tmp_path_factory):
+def sft_model(tiny_lm):
     """A random tiny model with a tokenizer trained on countdown text: the 'SFT model' the stage starts from."""
-    from posttrain.models import bootstrap
-
-    root = tmp_path_factory.mktemp("grpo")
-    bootstrap("tiny", countdown.corpus(200, 0), root / "sft", vocab_size=256, seed=0, max_length=128,
-              split_digits=True)
-    return root / "sft"
+    return tiny_lm("tiny-countdown", vocab_size=256, max_length=128, split_digits=True)
 
 
 def _args(sft_model, out: Path, *extra: str) -> list[str]:

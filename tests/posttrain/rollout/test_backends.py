@@ -39,14 +39,8 @@ def _restore_backend():
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    from posttrain.models import bootstrap
-    from posttrain.tasks import countdown
-
-    root = tmp_path_factory.mktemp("backends")
-    bootstrap("tiny", countdown.corpus(200, 0), root / "sft", vocab_size=256, seed=0, max_length=128,
-              split_digits=True)
-    return root / "sft"
+def tiny(tiny_lm):
+    return tiny_lm("tiny-countdown", vocab_size=256, max_length=128, split_digits=True)
 
 
 def _load(path):
@@ -281,7 +275,7 @@ def test_grpo_with_the_vllm_backend_pushes_every_step_and_recomputes_pi_old(tiny
     sft = out / "tiny-countdown" / "sft" / "final"
     shutil.copytree(tiny, sft)
     assert main(["grpo", "--recipe", "tiny-countdown", f"run.output_dir={out}", "rollout.backend=vllm",
-                 f"verifier={HERE / 'grpo_verifiers.py'}:digits", "verifier_workers=0", "prompts_per_step=4",
+                 f"verifier={HERE.parent / 'grpo_verifiers.py'}:digits", "verifier_workers=0", "prompts_per_step=4",
                  "group_size=4", "max_new_tokens=8", "max_steps=2", "eval_every=0", "eval_rows=4",
                  "final_eval_rows=4", "save_every=0", "lr=1e-3", "task.n_train=32", "task.n_eval=8", "run.threads=1",
                  "old_logprobs=rollout", "zero_variance=keep", "run.quiet=true"]) == 0
