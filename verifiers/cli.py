@@ -1,6 +1,6 @@
 """Command line for the verifier layer: list, audit, score.
 
-    python -m verifiers.cli list
+    python -m verifiers.cli list        (the last line says which code sandbox runs: bubblewrap or fallback)
     python -m verifiers.cli audit math --n 50 --seed 0 [--json report.json]
     python -m verifiers.cli audit my_checks.py:grade --problems problems.jsonl
     python -m verifiers.cli score math rollouts.jsonl --completion-field completion --reference-field answer
@@ -106,7 +106,24 @@ def cmd_list(args: argparse.Namespace) -> int:
     print(f"{'name':{width}s}  {'origin':{owidth}s}  description")
     for name, desc, origin in rows:
         print(f"{name:{width}s}  {origin:{owidth}s}  {desc}")
+    if any(name == "code" and origin == "built-in" and not desc.startswith("unavailable") for name, desc, origin in rows):
+        print(_code_sandbox_line())
     return 0
+
+
+def _code_sandbox_line() -> str:
+    """Which sandbox the `code` verifier uses here, and what it isolates (probes once, ~0.1 s)."""
+    import warnings
+
+    try:
+        from verifiers.code_sandbox import CodeVerifier
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # the no-root fallback's warning: the line says it
+            v = CodeVerifier()
+        return f"code sandbox: {v.sandbox} ({v.isolation}; python {v.python})"
+    except Exception as e:  # a broken sandbox must not break `list`
+        return f"code sandbox: unavailable ({type(e).__name__}: {e})"
 
 
 def cmd_audit(args: argparse.Namespace) -> int:

@@ -280,11 +280,13 @@ def test_sandbox_properties(verifier, monkeypatch):
     ]
     if verifier.mode == "bwrap" or "unshare" in verifier.isolation:
         tests.append("assert not probe()['net']")
-    if verifier.mode == "bwrap":
+    if verifier.mode == "bwrap" or "unshare" in verifier.isolation:  # the checkout is not in the view
         tests.append("assert not probe()['repo_visible']")
     v = verifier.check(probe, {"tests": tests, "entry_point": "probe"})
     assert v.passed, v.details
     assert v.details["mode"] == verifier.mode and v.details["isolation"] == verifier.isolation
+    assert v.details["sandbox"] == verifier.sandbox == {
+        "bwrap": "bubblewrap", "unshare": "fallback"}.get(verifier.isolation.split(":")[0], "fallback (no namespaces)")
     interpreter = v.details["python"].split(" (")[0]
     assert os.access(interpreter, os.X_OK) and os.stat(interpreter).st_mode & 0o001  # runnable by other users
     assert not os.path.exists("/etc/posttrain-escape")
@@ -373,36 +375,68 @@ def test_measure_overhead_reports_each_mode():
     assert "rlimits" in report["modes"] and all(m["median_ms"] > 0 for m in report["modes"].values())
 
 
+def _world_searchable_dir() -> str:
+    """A fresh directory (0755, ours) whose every ancestor other users can search."""
+    for parent in (tempfile.gettempdir(), "/var/tmp", "/dev/shm", "/tmp"):
+        d, ok = os.path.realpath(parent), os.path.isdir(parent)
+        while ok:
+            ok = bool(os.stat(d).st_mode & stat.S_IXOTH)
+            if os.path.dirname(d) == d:
+                break
+            d = os.path.dirname(d)
+        if ok:
+            path = tempfile.mkdtemp(prefix="posttrain-nonroot-test-", dir=parent)
+            os.chmod(path, 0o755)
+            return path
+    raise RuntimeError("no directory here that other users can reach (/tmp, /var/tmp, /dev/shm)")
+
+
 @pytest.mark.skipif(not IS_ROOT or sandbox_mode() != "bwrap", reason="needs root (to switch user) and bubblewrap")
 def test_works_for_a_non_root_caller():
-    """The same sandbox started by an unprivileged user (no uid switching; RLIMIT_NPROC per user namespace)."""
+    """The same sandbox started by an unprivileged user (no uid switching; RLIMIT_NPROC per user namespace),
+    and the non-root fallback: its work directory is removed even when the candidate locks its subdirectories."""
     python = "/usr/bin/python3"
-    if not os.access(python, os.X_OK):
-        pytest.skip("no system python3")
-    # The child runs as uid 65534 and imports the package from this checkout: every directory
-    # above it must be searchable by others (a clone under /root or a 0700 temp dir is not).
-    d = os.path.join(REPO, "verifiers", "code_sandbox")
-    while True:
-        if not os.stat(d).st_mode & stat.S_IXOTH:
-            pytest.skip(f"{d} is not searchable by other users, so an unprivileged child cannot import the checkout")
-        if os.path.dirname(d) == d:
-            break
-        d = os.path.dirname(d)
-    script = textwrap.dedent(f"""\
-        import importlib, json, sys, types
-        pkg = types.ModuleType('verifiers'); pkg.__path__ = [{os.path.join(REPO, 'verifiers')!r}]
-        sys.modules['verifiers'] = pkg
-        cs = importlib.import_module('verifiers.code_sandbox')
-        v = cs.CodeVerifier(time_limit_s=1.5, memory_mb=160, max_processes=8)
-        ref = {{"tests": ["assert f(2) == 4"], "entry_point": "f"}}
-        bomb = "import os\\nwhile True:\\n    try:\\n        os.fork()\\n    except OSError:\\n        pass\\n"
-        out = [v.mode, v.check("def f(x):\\n    return x * 2\\n", ref).reason, v.check(bomb, ref).reason,
-               v.check("import os\\ndef f(x):\\n    return os.getuid() and 4\\n", ref).reason]
-        print(json.dumps(out))
-        """)
-    r = subprocess.run([python, "-S", "-c", script], user=65534, group=65534, extra_groups=[], cwd="/",
-                       capture_output=True, text=True, timeout=60, env={"PATH": "/usr/bin:/bin"})
-    if r.returncode != 0 and "Permission denied" in r.stderr:
-        pytest.skip("the repository is not readable by other users here")
-    assert r.returncode == 0, r.stderr
-    assert json.loads(r.stdout) == ["bwrap", "passed", "timeout", "passed"]
+    assert os.access(python, os.X_OK), "no system python3 (the sandbox itself needs one the sandbox user can run)"
+    # The child runs as uid 65534, so it imports a copy of the package that other users can read,
+    # in a directory of its own (the checkout may be under /root, a pytest tmp dir is 0700).
+    import shutil
+    etc_mode = os.stat("/etc").st_mode
+    base = _world_searchable_dir()
+    try:
+        shutil.copytree(os.path.join(REPO, "verifiers"), os.path.join(base, "verifiers"),
+                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        scratch = os.path.join(base, "tmp")  # the child's TMPDIR: the fallback's work dirs go here
+        os.mkdir(scratch)
+        os.chmod(scratch, 0o1777)
+        for root, dirs, files in os.walk(os.path.join(base, "verifiers")):
+            os.chmod(root, 0o755)
+            for name in files:
+                os.chmod(os.path.join(root, name), 0o644)
+        script = textwrap.dedent(f"""\
+            import importlib, json, sys, types, warnings
+            pkg = types.ModuleType('verifiers'); pkg.__path__ = [{os.path.join(base, 'verifiers')!r}]
+            sys.modules['verifiers'] = pkg
+            cs = importlib.import_module('verifiers.code_sandbox')
+            v = cs.CodeVerifier(time_limit_s=1.5, memory_mb=160, max_processes=8)
+            ref = {{"tests": ["assert f(2) == 4"], "entry_point": "f"}}
+            bomb = "import os\\nwhile True:\\n    try:\\n        os.fork()\\n    except OSError:\\n        pass\\n"
+            out = [v.mode, v.sandbox, v.check("def f(x):\\n    return x * 2\\n", ref).reason, v.check(bomb, ref).reason,
+                   v.check("import os\\ndef f(x):\\n    return os.getuid() and 4\\n", ref).reason]
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                fb = cs.CodeVerifier(mode="rlimits", time_limit_s=1.5, memory_mb=160, max_processes=8)
+            locked = ("import os\\nos.makedirs('a/b/c')\\nopen('a/b/c/f', 'w').close()\\n"
+                      "os.symlink('/etc', 'a/etc')\\nos.chmod('a/b', 0)\\nos.chmod('a', 0o500)\\n"
+                      "def f(x):\\n    return 2 * x\\n")
+            out += [fb.mode, fb.sandbox, any("without root" in str(w.message) for w in caught), fb.check(locked, ref).reason]
+            print(json.dumps(out))
+            """)
+        r = subprocess.run([python, "-S", "-c", script], user=65534, group=65534, extra_groups=[], cwd="/",
+                           capture_output=True, text=True, timeout=60, env={"PATH": "/usr/bin:/bin", "TMPDIR": scratch})
+        assert r.returncode == 0, r.stderr
+        assert json.loads(r.stdout) == ["bwrap", "bubblewrap", "passed", "timeout", "passed",
+                                        "rlimits", "fallback (no namespaces)", True, "passed"]
+        assert os.listdir(scratch) == []  # the fallback's work dir is gone, locked subdirectories and all
+        assert os.stat("/etc").st_mode == etc_mode
+    finally:
+        shutil.rmtree(base, ignore_errors=True)

@@ -61,6 +61,140 @@ def harden():
             raise OSError(ctypes.get_errno(), "prctl(%d) failed" % option)
 
 
+# ------------------------------------------------------- fallback filesystem view (root)
+# Only in the fallback with namespaces: the parent starts us as root in fresh mount, pid,
+# net, ipc and uts namespaces (`unshare ... --mount-proc`, no --setuid); argv[9:] is
+# `view UID TMP_BYTES SHM_BYTES (min|root) (auto|remount) ITEMS...` (sandbox.py, _view_args).
+MS_RDONLY, MS_NOSUID, MS_NODEV, MS_REMOUNT, MS_BIND, MS_REC, MS_PRIVATE = 1, 2, 4, 32, 4096, 16384, 1 << 18
+# statvfs flags a bind remount must keep (same values as MS_NOSUID, MS_NODEV, MS_NOEXEC,
+# MS_NOATIME, MS_NODIRATIME; the kernel keeps relatime/strictatime on a remount by itself).
+KEEP_FLAGS = 2 | 4 | 8 | 1024 | 2048
+# pivot_root's syscall number; mount_setattr is 442 on all of these (the unified table).
+PIVOT_ROOT = {"x86_64": 155, "aarch64": 41, "riscv64": 41, "ppc64le": 203, "ppc64": 203, "s390x": 217}
+
+
+def enter_view(args):
+    """Build the run's filesystem in this (private) mount namespace, then drop root.
+
+    "min": a new root holding read-only binds of the ITEMS (/usr, /etc, /lib*, the
+    interpreter's prefix), this pid namespace's /proc (read-only), /dev with null, zero,
+    full, random, urandom and tty only, and fresh size-limited tmpfs at /tmp and /dev/shm;
+    pivot_root into it and detach the host's tree (chroot where pivot_root is unknown).
+    "root": every mount of the host read-only, fresh tmpfs over /tmp and /dev/shm.
+    Then /tmp/work (0700, the run's uid) is cwd, and all of uid/gid/groups become UID.
+    """
+    uid, tmp_bytes, shm_bytes, view, how = int(args[0]), int(args[1]), int(args[2]), args[3], args[4]
+    items = args[5:]
+    libc = ctypes.CDLL(None, use_errno=True)
+
+    def enc(x):
+        return x.encode("utf-8", "surrogateescape") if isinstance(x, str) else x
+
+    def mount(src, dst, fstype, flags, data=None):
+        if libc.mount(enc(src), enc(dst), enc(fstype), ctypes.c_ulong(flags), enc(data)) != 0:
+            e = ctypes.get_errno()
+            raise OSError(e, "mount(%r, %r): %s" % (src, dst, os.strerror(e)))
+
+    def mounts_under(top):
+        out = []
+        with open("/proc/self/mountinfo", "rb") as f:
+            for line in f:
+                point = line.split(b" ")[4]
+                for code in (b"\\040", b"\\011", b"\\012", b"\\134"):  # escapes: space, tab, newline, \\ last
+                    point = point.replace(code, bytes([int(code[1:], 8)]))
+                point = point.decode("utf-8", "surrogateescape")
+                if top == "/" or point == top or point.startswith(top + "/"):
+                    out.append(point)
+        return out
+
+    def readonly(top):
+        if how == "auto" and os.uname().machine in PIVOT_ROOT:
+            class MountAttr(ctypes.Structure):
+                _fields_ = [("attr_set", ctypes.c_uint64), ("attr_clr", ctypes.c_uint64),
+                            ("propagation", ctypes.c_uint64), ("userns_fd", ctypes.c_uint64)]
+            attr = MountAttr(MS_RDONLY | MS_NOSUID, 0, 0, 0)  # MOUNT_ATTR_RDONLY | MOUNT_ATTR_NOSUID
+            # mount_setattr(AT_FDCWD, top, AT_RECURSIVE, &attr, sizeof attr): one call, all or nothing.
+            if libc.syscall(442, -100, enc(top), 0x8000, ctypes.byref(attr), ctypes.c_size_t(32)) == 0:
+                return
+        for point in mounts_under(top):  # older kernels: one bind remount per mount, keeping its flags
+            try:
+                keep = os.statvfs(point).f_flag & KEEP_FLAGS
+            except OSError:
+                continue  # shadowed by a later mount, or not reachable by root (FUSE): not visible either
+            mount(None, point, None, MS_REMOUNT | MS_BIND | MS_RDONLY | MS_NOSUID | keep)
+
+    mount(None, "/", None, MS_REC | MS_PRIVATE)  # nothing we mount propagates to the host
+    if view == "min":
+        new = "/tmp"  # a mount point in this namespace only; the host's /tmp is not touched
+        mount("tmpfs", new, "tmpfs", MS_NOSUID | MS_NODEV, "size=1m,nr_inodes=4096,mode=755")
+        i = 0
+        while i < len(items):
+            if items[i] == "b":
+                path = items[i + 1]
+                os.makedirs(new + path, exist_ok=True)
+                mount(path, new + path, None, MS_BIND | MS_REC)
+                i += 2
+            else:
+                path, target = items[i + 1], items[i + 2]
+                os.makedirs(new + os.path.dirname(path), exist_ok=True)
+                os.symlink(target, new + path)
+                i += 3
+        os.mkdir(new + "/proc")
+        mount("/proc", new + "/proc", None, MS_BIND | MS_REC)  # this pid namespace's proc
+        os.mkdir(new + "/dev")
+        for name in ("null", "zero", "full", "random", "urandom", "tty"):
+            if os.path.exists("/dev/" + name):
+                os.close(os.open(new + "/dev/" + name, os.O_CREAT | os.O_WRONLY, 0o644))
+                mount("/dev/" + name, new + "/dev/" + name, None, MS_BIND)
+        for name, target in (("fd", "/proc/self/fd"), ("stdin", "/proc/self/fd/0"), ("stdout", "/proc/self/fd/1"),
+                             ("stderr", "/proc/self/fd/2")):
+            os.symlink(target, new + "/dev/" + name)
+        os.mkdir(new + "/dev/shm")
+        os.mkdir(new + "/tmp")
+        readonly(new)
+        tmp, shm = new + "/tmp", new + "/dev/shm"
+    else:
+        new = None
+        readonly("/")
+        tmp, shm = "/tmp", "/dev/shm"
+    mount("tmpfs", tmp, "tmpfs", MS_NOSUID | MS_NODEV, "size=%d,nr_inodes=16384,mode=1777" % tmp_bytes)
+    if os.path.isdir(shm):
+        mount("tmpfs", shm, "tmpfs", MS_NOSUID | MS_NODEV, "size=%d,nr_inodes=1024,mode=1777" % shm_bytes)
+    os.mkdir(tmp + "/work", 0o700)
+    os.chown(tmp + "/work", uid, uid)
+    if new is not None:
+        os.chdir(new)
+        number = PIVOT_ROOT.get(os.uname().machine)
+        # pivot_root(".", "."), then detach the old root stacked on top (pivot_root(2), NOTES).
+        if number is not None and libc.syscall(number, b".", b".") == 0:
+            if libc.umount2(b".", 2) != 0:  # MNT_DETACH
+                e = ctypes.get_errno()
+                raise OSError(e, "umount2(old root): %s" % os.strerror(e))
+        else:
+            os.chroot(".")  # no pivot_root here: chroot (the uid cannot undo it: no CAP_SYS_CHROOT)
+    os.chdir("/tmp/work")
+    os.setgroups([])
+    os.setresgid(uid, uid, uid)
+    os.setresuid(uid, uid, uid)
+    with open("/proc/self/status", "rb") as f:
+        caps = [line.split()[1] for line in f if line.startswith((b"CapPrm:", b"CapEff:"))]
+    if os.getuid() != uid or os.getgid() != uid or any(int(c, 16) for c in caps):
+        raise OSError("the harness did not drop root (uid %d, caps %r)" % (os.getuid(), caps))
+
+
+def probe_view():
+    """The answer to the parent's probe (sandbox.py, _probe_unshare)."""
+    def writable(path):
+        try:
+            os.close(os.open(path, os.O_CREAT | os.O_WRONLY | os.O_EXCL, 0o600))
+            os.unlink(path)
+            return True
+        except OSError:
+            return False
+    return {"status": "probe", "uid": os.getuid(), "root_writable": writable("/.posttrain-probe"),
+            "work_writable": writable("/tmp/work/.posttrain-probe")}
+
+
 def write_all(fd, data):
     view = memoryview(data)
     while view:
@@ -406,6 +540,8 @@ def run(task, link, out):
 
 
 def main():
+    if len(sys.argv) > 9 and sys.argv[9] == "view":
+        enter_view(sys.argv[10:])
     harden()
     c_in_r, p_out_w = os.pipe()  # P -> C
     p_in_r, c_out_w = os.pipe()  # C -> P
@@ -427,6 +563,12 @@ def main():
         chunks.append(chunk)
     task = marshal.loads(b"".join(chunks))
     nonce = task.pop("nonce")
+    if task.get("probe"):
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        out = probe_view()
+        out["nonce"] = nonce
+        return out
 
     def on_alarm(signum, frame):
         raise Deadline()

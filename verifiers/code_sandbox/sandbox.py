@@ -5,12 +5,17 @@ verifiers/code_sandbox/__init__.py.
 """
 from __future__ import annotations
 
+import ast
 import collections
+import errno
+import marshal
 import os
 import selectors
 import shutil
+import stat
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from contextlib import contextmanager
@@ -153,6 +158,23 @@ def _unshare_path() -> str | None:
     return shutil.which("unshare", path=_SYSTEM_PATH + ":/usr/sbin:/sbin")
 
 
+def _system_view(interp: _Interpreter) -> list[tuple[str, str, str]]:
+    """What both sandboxes show of the host by default: ("bind", path, path) read-only binds of
+    /usr, /etc, /bin, /sbin, /lib* and the interpreter's prefixes, ("link", path, target) for the
+    merged-/usr symlinks. Nothing else of the host filesystem (home directories, datasets, the
+    checkout, /tmp, /var, /run) is visible."""
+    view: list[tuple[str, str, str]] = [("bind", "/usr", "/usr"), ("bind", "/etc", "/etc")]
+    for d in ("/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32"):
+        if os.path.islink(d):
+            view.append(("link", d, os.readlink(d)))
+        elif os.path.isdir(d):
+            view.append(("bind", d, d))
+    for prefix in interp.prefixes:
+        if prefix not in ("/", "/usr") and not prefix.startswith(("/usr/", "/etc/")) and os.path.isdir(prefix):
+            view.append(("bind", prefix, prefix))
+    return view
+
+
 def _bwrap_argv(bwrap: str, interp: _Interpreter, *, bind_root: bool, tmpfs_mb: int) -> list[str]:
     # --as-pid-1: the harness is the namespace's init, so the candidate cannot kill it, and
     # when it exits the kernel kills and reaps everything else before bwrap returns.
@@ -161,15 +183,8 @@ def _bwrap_argv(bwrap: str, interp: _Interpreter, *, bind_root: bool, tmpfs_mb: 
     if bind_root:
         argv += ["--ro-bind", "/", "/"]
     else:
-        argv += ["--ro-bind", "/usr", "/usr", "--ro-bind", "/etc", "/etc"]
-        for d in ("/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32"):
-            if os.path.islink(d):
-                argv += ["--symlink", os.readlink(d), d]
-            elif os.path.isdir(d):
-                argv += ["--ro-bind", d, d]
-        for prefix in interp.prefixes:
-            if prefix not in ("/", "/usr") and not prefix.startswith(("/usr/", "/etc/")) and os.path.isdir(prefix):
-                argv += ["--ro-bind", prefix, prefix]
+        for kind, path, source in _system_view(interp):
+            argv += ["--symlink", source, path] if kind == "link" else ["--ro-bind", source, path]
     size = str(tmpfs_mb << 20)
     argv += ["--dev", "/dev", "--size", str(min(tmpfs_mb, 16) << 20), "--tmpfs", "/dev/shm", "--remount-ro", "/dev",
              "--proc", "/proc", "--size", size, "--tmpfs", "/tmp", "--dir", "/tmp/work"]
@@ -202,28 +217,61 @@ def _probe_bwrap(interp: _Interpreter, bind_root: bool) -> str | None:
     return why
 
 
-def _probe_unshare(interp: _Interpreter) -> bool:
-    """Whether `unshare --net --pid ... --setuid` works (root only)."""
-    key = ("unshare", interp.path)
+# How the fallback's harness makes its view read-only: "auto" (mount_setattr(2) with
+# AT_RECURSIVE, Linux >= 5.12, else one bind remount per mount) or "remount" (always the
+# latter; tests use it to exercise that path).
+_VIEW_READONLY = "auto"
+
+
+def _view_args(interp: _Interpreter, uid: int, *, bind_root: bool, tmpfs_mb: int) -> list[str]:
+    """The harness's argv tail that makes it build the fallback's filesystem view, then drop to `uid`.
+
+    Layout: view UID TMP_BYTES SHM_BYTES (min|root) (auto|remount) then `b PATH` (read-only
+    bind) or `l PATH TARGET` (symlink) items; see harness.py, enter_view.
+    """
+    argv = ["view", str(uid), str(tmpfs_mb << 20), str(min(tmpfs_mb, 16) << 20), "root" if bind_root else "min",
+            _VIEW_READONLY]
+    if not bind_root:
+        for kind, path, source in _system_view(interp):
+            argv += ["l", path, source] if kind == "link" else ["b", path]
+    return argv
+
+
+def _unshare_argv(unshare: str) -> list[str]:
+    # No --setuid: the harness starts as root inside the new namespaces, builds its
+    # filesystem view (harness.py, enter_view) and then drops to the run's uid itself.
+    return [unshare, "--net", "--pid", "--fork", "--kill-child", "--mount-proc", "--ipc", "--uts", "--"]
+
+
+# The harness's config ints for probes: timeout, cpu, mem, fsize, nofile, nproc, max_msg, max_failures.
+_PROBE_CONFIG = ["10.0", "10", str(256 << 20), str(1 << 20), "64", "16", str(1 << 20), "5"]
+
+
+def _probe_unshare(interp: _Interpreter, bind_root: bool = False) -> bool:
+    """Whether the fallback's namespaces work here (root only): `unshare --net --pid ...` plus
+    the harness's own view (read-only root, private /tmp) and its switch to a per-run uid."""
+    key = ("unshare", interp.path, bind_root)
     with _probe_lock:
         if key in _probe_cache:
             return _probe_cache[key]
     ok = False
     unshare = _unshare_path()
     if unshare and _is_root():
-        argv = _unshare_argv(unshare, _UID_BASE) + [interp.path, "-S", "-s", "-B", "-c", _PROBE]
+        argv = (_unshare_argv(unshare) + [interp.path, "-S", "-s", "-B", "-c", _HARNESS] + _PROBE_CONFIG
+                + _view_args(interp, _UID_BASE, bind_root=bind_root, tmpfs_mb=8))
+        payload = marshal.dumps({"nonce": "probe", "probe": True}, 4)
         try:
-            ok = subprocess.run(argv, capture_output=True, timeout=30, env={"PATH": _SYSTEM_PATH}, cwd="/").returncode == 0
-        except (OSError, subprocess.SubprocessError):
+            r = subprocess.run(argv, input=payload, capture_output=True, timeout=30, env={"PATH": _SYSTEM_PATH},
+                               cwd="/")
+            line = r.stdout.split(b"\n", 1)[0].decode("utf-8", "replace")
+            res = ast.literal_eval(line) if line else None
+            ok = (isinstance(res, dict) and res.get("status") == "probe" and res.get("uid") == _UID_BASE
+                  and res.get("root_writable") is False and res.get("work_writable") is True)
+        except (OSError, subprocess.SubprocessError, ValueError, SyntaxError):
             ok = False
     with _probe_lock:
         _probe_cache[key] = ok
     return ok
-
-
-def _unshare_argv(unshare: str, uid: int) -> list[str]:
-    return [unshare, "--net", "--pid", "--fork", "--kill-child", "--mount-proc", "--ipc", "--uts",
-            "--setgid", str(uid), "--setuid", str(uid), "--"]
 
 
 def sandbox_mode(python: str | None = None) -> SandboxMode:
@@ -271,34 +319,208 @@ def _kill_uid(uid: int, python: str) -> None:
         time.sleep(0.01)
 
 
-def _remove_uid_files(uid: int) -> None:
-    for base in ("/tmp", "/var/tmp", "/dev/shm"):
+# Removal of a run's files. Rules: never follow a symlink (every name is opened relative to
+# its parent's fd with O_NOFOLLOW and checked against the inode lstat saw), never leave the
+# tree (no crossing onto another device, nothing above the top directory is touched), and
+# never chmod anything but a directory of the run's own tree, owned by us, when we are not
+# root and the candidate made it unreadable (root needs no chmod at all).
+_O_DIR = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
+_MAX_DEPTH = 64  # deeper directories are moved up to the top directory and removed from there
+_MAX_REMOVALS = 1_000_000
+
+
+@dataclass(frozen=True)
+class _WorkDir:
+    """A host work directory the verifier created (fallback without namespaces): its path, and an
+    fd opened at creation, so cleanup finds the same inode even if the run renamed the path."""
+    path: str
+    fd: int
+    dev: int
+    ino: int
+
+
+def _make_workdir(uid: int | None) -> _WorkDir:
+    path = tempfile.mkdtemp(prefix=f"posttrain-sandbox-{os.getpid()}-")
+    fd = os.open(path, _O_DIR)
+    try:
+        if uid is not None:
+            os.fchown(fd, uid, uid)
+        os.fchmod(fd, 0o700)
+        st = os.fstat(fd)
+    except BaseException:
+        os.close(fd)
+        os.rmdir(path)
+        raise
+    return _WorkDir(path, fd, st.st_dev, st.st_ino)
+
+
+def _remove_workdir(work: _WorkDir) -> None:
+    """Empty the work directory through the fd taken at creation, then remove its name only if
+    the name still denotes that directory (the run may have renamed it and put something else,
+    e.g. a symlink, in its place; as root, the uid scan then finds the renamed directory)."""
+    try:
+        _clear_dir(work.fd, work.dev)
+        parent = os.open(os.path.dirname(work.path), os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
         try:
-            entries = list(os.scandir(base))
+            name = os.path.basename(work.path)
+            st = os.stat(name, dir_fd=parent, follow_symlinks=False)
+            if stat.S_ISDIR(st.st_mode) and (st.st_dev, st.st_ino) == (work.dev, work.ino):
+                os.rmdir(name, dir_fd=parent)
+        finally:
+            os.close(parent)
+    except OSError:
+        pass
+    finally:
+        os.close(work.fd)
+
+
+def _open_subdir(parent: int, name: str, st: os.stat_result) -> int | None:
+    """fd of directory `name` in `parent`, the very inode `st` describes; None if it is gone,
+    was swapped, or cannot be opened."""
+    try:
+        fd = os.open(name, _O_DIR, dir_fd=parent)
+    except PermissionError:
+        if _is_root() or st.st_uid != os.geteuid():
+            return None
+        # Not root: the candidate (our own uid) made its directory unreadable. Give it back
+        # u+rwx, through an O_PATH fd of that inode (never through a name that could be a link).
+        try:
+            pfd = os.open(name, os.O_PATH | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC, dir_fd=parent)
         except OSError:
-            continue
-        for entry in entries:
-            try:
-                if entry.stat(follow_symlinks=False).st_uid != uid:
-                    continue
-                if entry.is_dir(follow_symlinks=False):
-                    _rmtree(entry.path)
-                else:
-                    os.unlink(entry.path)
-            except OSError:
-                pass
-
-
-def _rmtree(path: str) -> None:
-    def retry(func: Any, p: str, _exc: Any) -> None:
+            return None
         try:
-            os.chmod(os.path.dirname(p), 0o700)
-            os.chmod(p, 0o700)
-            func(p)
+            pst = os.fstat(pfd)
+            if (pst.st_dev, pst.st_ino) != (st.st_dev, st.st_ino):
+                return None
+            os.chmod(f"/proc/self/fd/{pfd}", stat.S_IMODE(pst.st_mode) | stat.S_IRWXU)
+        except OSError:
+            return None
+        finally:
+            os.close(pfd)
+        try:
+            fd = os.open(name, _O_DIR, dir_fd=parent)
+        except OSError:
+            return None
+    except OSError:
+        return None
+    fst = os.fstat(fd)
+    if (fst.st_dev, fst.st_ino) != (st.st_dev, st.st_ino):
+        os.close(fd)
+        return None
+    if not _is_root() and fst.st_uid == os.geteuid() and stat.S_IMODE(fst.st_mode) & stat.S_IRWXU != stat.S_IRWXU:
+        try:
+            os.fchmod(fd, stat.S_IMODE(fst.st_mode) | stat.S_IRWXU)  # needed to unlink its entries
         except OSError:
             pass
+    return fd
 
-    shutil.rmtree(path, onerror=retry)
+
+def _clear_dir(top: int, dev: int) -> None:
+    """Remove everything inside the open directory `top` (not `top` itself)."""
+    budget = [_MAX_REMOVALS]
+    if not _is_root():
+        try:
+            st = os.fstat(top)
+            if st.st_uid == os.geteuid() and stat.S_IMODE(st.st_mode) & stat.S_IRWXU != stat.S_IRWXU:
+                os.fchmod(top, stat.S_IMODE(st.st_mode) | stat.S_IRWXU)  # the top is ours: we created it
+        except OSError:
+            pass
+    while budget[0] > 0:
+        before = budget[0]
+        _clear_level(top, top, dev, 0, budget)
+        try:
+            if not os.listdir(top) or budget[0] == before:
+                return  # empty, or no progress (what is left cannot be removed)
+        except OSError:
+            return
+
+
+def _clear_level(fd: int, top: int, dev: int, depth: int, budget: list[int]) -> None:
+    try:
+        names = os.listdir(fd)
+    except OSError:
+        return
+    for name in names:
+        if budget[0] <= 0:
+            return
+        try:
+            st = os.stat(name, dir_fd=fd, follow_symlinks=False)
+        except OSError:
+            continue
+        try:
+            if not stat.S_ISDIR(st.st_mode):
+                os.unlink(name, dir_fd=fd)  # a symlink is removed, never followed
+                budget[0] -= 1
+                continue
+            if st.st_dev != dev:
+                continue  # a mount point: not ours to empty
+            try:
+                os.rmdir(name, dir_fd=fd)
+                budget[0] -= 1
+                continue
+            except OSError as exc:
+                if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST, errno.EACCES, errno.EPERM):
+                    continue
+            if depth >= _MAX_DEPTH:
+                # Bounded recursion and fds: move the deep part up; a later pass removes it.
+                os.rename(name, f".posttrain-deep-{st.st_ino}-{budget[0]}", src_dir_fd=fd, dst_dir_fd=top)
+                budget[0] -= 1
+                continue
+            sub = _open_subdir(fd, name, st)
+            if sub is None:
+                continue
+            try:
+                _clear_level(sub, top, dev, depth + 1, budget)
+            finally:
+                os.close(sub)
+            os.rmdir(name, dir_fd=fd)
+            budget[0] -= 1
+        except OSError:
+            continue
+
+
+def _remove_entry(parent: int, name: str, uid: int | None = None) -> None:
+    """Remove `name` in the open directory `parent` (a directory with its whole tree), if it is
+    owned by `uid` (None: any owner). Never follows a symlink."""
+    try:
+        st = os.stat(name, dir_fd=parent, follow_symlinks=False)
+    except OSError:
+        return
+    if uid is not None and st.st_uid != uid:
+        return
+    try:
+        if not stat.S_ISDIR(st.st_mode):
+            os.unlink(name, dir_fd=parent)
+            return
+        sub = _open_subdir(parent, name, st)
+        if sub is None:
+            return
+        try:
+            _clear_dir(sub, st.st_dev)
+        finally:
+            os.close(sub)
+        os.rmdir(name, dir_fd=parent)
+    except OSError:
+        pass
+
+
+def _remove_uid_files(uid: int) -> None:
+    """Remove the entries of /tmp, /var/tmp and /dev/shm owned by `uid` (root, fallback
+    without namespaces: the only mode where a run can write there; it is killed by now)."""
+    if uid < _UID_BASE or uid == os.getuid():
+        raise RuntimeError(f"refusing to remove the files of uid {uid}")
+    for base in ("/tmp", "/var/tmp", "/dev/shm"):
+        try:
+            fd = os.open(base, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+        except OSError:
+            continue
+        try:
+            for name in os.listdir(fd):
+                _remove_entry(fd, name, uid)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
 
 
 # --------------------------------------------------------------------------------------

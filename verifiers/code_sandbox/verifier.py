@@ -12,7 +12,6 @@ import os
 import secrets
 import signal
 import subprocess
-import tempfile
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -24,8 +23,9 @@ from verifiers.code_sandbox.audit import _ADVERSARIAL, _PROBLEMS
 from verifiers.code_sandbox.extract import _IMPORT_LINE, _Task, _defines, _parse_reference, extract_code
 from verifiers.code_sandbox.sandbox import (
     _HARNESS, _SYSTEM_PATH, _UID_SLOTS, SandboxMode, _as_user, _bwrap_argv, _bwrap_path, _communicate,
-    _count_tasks, _drain_tail, _find_interpreter, _is_root, _kill_uid, _probe_bwrap, _probe_unshare,
-    _remove_uid_files, _rmtree, _Run, _unshare_argv, _unshare_path, _wait_exit_unreaped, sandbox_mode,
+    _count_tasks, _drain_tail, _find_interpreter, _is_root, _kill_uid, _make_workdir, _probe_bwrap, _probe_unshare,
+    _remove_uid_files, _remove_workdir, _Run, _unshare_argv, _unshare_path, _view_args, _wait_exit_unreaped,
+    sandbox_mode,
 )
 
 
@@ -38,9 +38,11 @@ class CodeVerifier(Verifier):
     Options: mode ("auto" | "bwrap" | "rlimits"), partial_credit (score = passed/total),
     time_limit_s (wall clock for loading the code and running all tests), cpu_limit_s
     (per process; default int(time_limit_s) + 2), memory_mb (address space per process),
-    max_processes, max_file_mb, max_open_files, tmpfs_mb (bwrap scratch space), python
-    (sandbox interpreter), namespaces (rlimits mode as root: use `unshare`), bind_root
-    (bwrap: bind all of / read-only), output_tail_bytes, max_code_chars.
+    max_processes, max_file_mb, max_open_files, tmpfs_mb (the private /tmp of bwrap and
+    the fallback), python (sandbox interpreter), namespaces (rlimits mode as root: use
+    `unshare` and the read-only view), bind_root (bwrap and the fallback: show all of /
+    read-only instead of /usr, /etc, /lib* and the interpreter), output_tail_bytes,
+    max_code_chars.
     """
 
     name = "code"
@@ -95,7 +97,13 @@ class CodeVerifier(Verifier):
             self.mode = "bwrap"
         else:
             self.mode = "rlimits"
-        self._unshare = _unshare_path() if (self.mode == "rlimits" and namespaces and _probe_unshare(self._interp)) else None
+        self._unshare = (_unshare_path() if (self.mode == "rlimits" and namespaces and _probe_unshare(self._interp, bind_root))
+                         else None)
+        if self.mode == "rlimits" and _is_root() and namespaces and not self._unshare:
+            warnings.warn("code sandbox: neither bubblewrap nor the unshare fallback (util-linux unshare, mount "
+                          "namespaces) works here; candidates run as a per-run uid with rlimits only and can read "
+                          "world-readable host files and write world-writable ones (apt-get install bubblewrap)",
+                          RuntimeWarning, stacklevel=2)
         if self.mode == "rlimits" and not _is_root():
             warnings.warn("code sandbox: rlimits mode without root runs candidates as your own user with rlimits only "
                           "(no network or filesystem isolation; setsid() daemons can outlive a run); use bubblewrap "
@@ -108,18 +116,27 @@ class CodeVerifier(Verifier):
         return f"{self._interp.path} ({self._interp.version})"
 
     @property
+    def sandbox(self) -> str:
+        """Which sandbox runs the candidates: "bubblewrap", "fallback" (namespaces + read-only
+        view, as root with util-linux unshare) or "fallback (no namespaces)" (also in details)."""
+        if self.mode == "bwrap":
+            return "bubblewrap"
+        return "fallback" if self._unshare else "fallback (no namespaces)"
+
+    @property
     def isolation(self) -> str:
         """What the active mode isolates, in words (also in Verdict.details)."""
         who = "per-run uid" if _is_root() else "own uid"
+        view = "read-only / (bind_root)" if self.bind_root else "read-only /usr /etc /lib* + interpreter only"
         if self.mode == "bwrap":
-            return f"bwrap: user+pid+net+ipc+uts+mount namespaces, {who}, rlimits"
+            return f"bwrap: user+pid+net+ipc+uts+mount+cgroup namespaces, {view}, private /tmp, {who}, rlimits"
         if self._unshare:
-            return f"unshare: pid+net+ipc+uts+mount namespaces, {who}, rlimits"
-        return f"{who}, rlimits only"
+            return f"unshare: pid+net+ipc+uts+mount namespaces, {view}, private /tmp, {who}, rlimits"
+        return f"{who}, rlimits only; host filesystem writable where that uid may write"
 
     def check(self, completion: str, reference: Any) -> Verdict:
         task = _parse_reference(reference)
-        base = {"mode": self.mode, "isolation": self.isolation, "python": self.python,
+        base = {"mode": self.mode, "sandbox": self.sandbox, "isolation": self.isolation, "python": self.python,
                 "tests_total": task.n_tests, "tests_passed": 0}
         if not isinstance(completion, str):
             return Verdict(0.0, "no code found", base)
@@ -200,22 +217,24 @@ class CodeVerifier(Verifier):
             argv, kwargs = _as_user(argv + python + self._config(nproc), uid)
             env.update(HOME="/tmp/work", TMPDIR="/tmp/work")
             cwd = "/"
+        elif self._unshare and uid is not None:
+            # The harness starts as root in the new namespaces, builds the read-only view with
+            # a private tmpfs /tmp (nothing of the run reaches the host disk), then becomes uid.
+            nproc = self.max_processes + 1
+            argv = (_unshare_argv(self._unshare) + python + self._config(nproc)
+                    + _view_args(self._interp, uid, bind_root=self.bind_root, tmpfs_mb=self.tmpfs_mb))
+            kwargs = {}
+            env.update(HOME="/tmp/work", TMPDIR="/tmp/work")
+            cwd = "/"
         else:
-            workdir = tempfile.mkdtemp(prefix=f"posttrain-sandbox-{os.getpid()}-")
-            if uid is not None:
-                os.chown(workdir, uid, uid)
-            os.chmod(workdir, 0o700)
-            env.update(HOME=workdir, TMPDIR=workdir)
-            cwd = workdir
+            workdir = _make_workdir(uid)
+            env.update(HOME=workdir.path, TMPDIR=workdir.path)
+            cwd = workdir.path
             if uid is None:  # the count is per uid: leave room for what the user already runs
                 nproc = _count_tasks(os.getuid()) + self.max_processes + 1
             else:
                 nproc = self.max_processes + 1
-            if self._unshare and uid is not None:
-                argv = _unshare_argv(self._unshare, uid) + python + self._config(nproc)
-                kwargs = {}
-            else:
-                argv, kwargs = _as_user(python + self._config(nproc), uid)
+            argv, kwargs = _as_user(python + self._config(nproc), uid)
         deadline = time.monotonic() + self.time_limit_s + 2.0
         proc = None
         try:
@@ -237,8 +256,6 @@ class CodeVerifier(Verifier):
                 proc.wait()
                 if uid is not None:  # daemons that left the group or namespace: kill(-1) as the uid
                     _kill_uid(uid, self._interp.path)
-                    if self.mode == "rlimits":
-                        _remove_uid_files(uid)
             tail = _drain_tail(proc.stderr, tail, self.output_tail_bytes)
         finally:
             if proc is not None:
@@ -248,8 +265,10 @@ class CodeVerifier(Verifier):
                             f.close()
                         except OSError:
                             pass
-            if workdir is not None:
-                _rmtree(workdir)
+            if workdir is not None:  # fallback without namespaces: the run could write on the host
+                _remove_workdir(workdir)  # (as root, every process of uid is dead by now)
+                if uid is not None:
+                    _remove_uid_files(uid)
         result = None
         line = out.split(b"\n", 1)[0]
         try:
@@ -350,7 +369,7 @@ def measure_overhead(n: int = 20) -> dict[str, Any]:
     variants: list[tuple[str, dict[str, Any]]] = [("rlimits", {"mode": "rlimits"})]
     if _probe_bwrap(interp, False) is None:
         variants.insert(0, ("bwrap", {"mode": "bwrap"}))
-    if _is_root() and _probe_unshare(interp):
+    if _is_root() and _probe_unshare(interp, False):
         variants.append(("rlimits-no-namespaces", {"mode": "rlimits", "namespaces": False}))
     for label, kwargs in variants:
         with warnings.catch_warnings():
@@ -366,6 +385,7 @@ def measure_overhead(n: int = 20) -> dict[str, Any]:
                 raise RuntimeError(f"measure_overhead: trivial candidate failed in {label} mode: {verdict}")
         times.sort()
         modes[label] = {
+            "sandbox": v.sandbox,
             "isolation": v.isolation,
             "mean_ms": round(statistics.fmean(times), 1),
             "median_ms": round(statistics.median(times), 1),
