@@ -118,15 +118,16 @@ def test_logic_verifier_mixes_and_dispatches():
 
 # ------------------------------------------------------------------ hostile and malformed answers
 @pytest.mark.parametrize("family", list(FAMILIES))
-def test_adversarial_cases_score_zero(family):
+def test_adversarial_cases_score_as_stated(family):
     verifier = FAMILIES[family]()
     for problem in verifier.audit_problems(15, seed=4):
         cases = verifier.adversarial_cases(problem)
         assert len(cases) >= 8
+        assert sum(1 for _, _, expected in cases if expected == 0.0) >= 8
         for label, completion, expected in cases:
             v = verifier.check(completion, problem.reference)
-            assert expected == 0.0 and v.score == 0.0, (label, completion, v)
-            assert v.reason not in ("", "correct")
+            assert v.score == expected, (label, completion, v)
+            assert (v.reason == "correct") == (expected == 1.0)
             json.dumps(v.to_dict())
         assert LOGIC.adversarial_cases(problem) == cases
 
@@ -244,6 +245,110 @@ def test_knights_single_letter_names_are_case_sensitive():
     assert v.check("<answer>A is a knight, B is a knave</answer>", ref).passed
     assert v.check("<answer>B: knave, A: knight</answer>", ref).passed
     assert not v.check("<answer>B is a knave and a knight is A</answer>", ref).passed
+
+
+# ------------------------------------------------------------------ knights and knaves: other role words
+SAINTS = {"family": "knights_knaves", "names": ["Alice", "Bob", "Carol"], "roles": ["saint", "sinner"],
+          "solution": {"Alice": "saint", "Bob": "sinner", "Carol": "saint"}}
+KK_DATASET = {"names": ["Zoey", "Oliver"], "solution": [True, False], "statements": "(('lying', 1),)",
+              "knight_knave": {"knight": "hero", "knave": "villain", "a_knight": "a hero", "a_knave": "a villain",
+                               "Knight": "Hero", "Knave": "Villain"}}
+FROM_PROMPT = {"names": ["Alice", "Bob", "Carol"], "solution": {"Alice": "knight", "Bob": "knave", "Carol": "knight"},
+               "prompt": "A very special island is inhabited only by altruists and egoists. Altruists always tell "
+                         "the truth, and egoists always lie. Alice says ..."}
+FROM_SOLUTION = {"names": ["Alice", "Bob", "Carol"], "solution": {"Alice": "Angel", "Bob": "devils", "Carol": "angel"}}
+TRUTH_TELLERS = {"names": ["Alice", "Bob", "Carol"], "roles": ["truth-teller", "liar"],
+                 "solution": {"Alice": "truth-teller", "Bob": "liar", "Carol": "truth-teller"}}
+FLIPPED = {"names": ["Zoey", "Oliver"], "solution": [True, False], "knight_knave": {"knight": "knave", "knave": "knight"}}
+
+
+@pytest.mark.parametrize("reference,completion", [
+    pytest.param(SAINTS, "<answer>Alice is a saint, Bob is a sinner, Carol is a saint</answer>", id="own-words"),
+    pytest.param(SAINTS, "<answer>Saints: Alice, Carol. Sinners: Bob</answer>", id="plural-capitalised-list"),
+    pytest.param(SAINTS, "<answer>Alice and Carol are SAINTS; Bob is a Sinner.</answer>", id="group-upper-case"),
+    pytest.param(SAINTS, "<answer>Alice is a knight, Bob is a knave, Carol is a knight</answer>", id="standard-words"),
+    pytest.param(SAINTS, "<answer>Alice is a saint, Bob is a knave, Carol is a knight</answer>", id="mixed-forms"),
+    pytest.param(SAINTS, "<answer>Alice tells the truth, Bob lies, Carol tells the truth</answer>", id="verbs"),
+    pytest.param(SAINTS, "So, in the end, Alice is a saint, Bob is a sinner and Carol is a saint.", id="free-text"),
+    pytest.param(KK_DATASET, "CONCLUSION:\n(1) Zoey is a hero\n(2) Oliver is a villain", id="kk-dataset-format"),
+    pytest.param(KK_DATASET, "<answer>Heroes: Zoey; villains: Oliver</answer>", id="kk-irregular-plural"),
+    pytest.param(FROM_PROMPT, "<answer>Alice and Carol are altruists, Bob is an egoist</answer>", id="roles-from-prompt"),
+    pytest.param(FROM_SOLUTION, "<answer>Alice and Carol are angels, Bob is a devil</answer>", id="roles-from-solution"),
+    pytest.param(TRUTH_TELLERS, "<answer>Alice is a truth teller, Bob is a liar, Carol is a truthteller</answer>",
+                 id="truth-teller-spellings"),
+    pytest.param(TRUTH_TELLERS, "<answer>Truth-tellers: Alice and Carol. Liars: Bob.</answer>", id="truth-tellers-plural"),
+    pytest.param(FLIPPED, "<answer>Zoey is a knave, Oliver is a knight</answer>", id="swapped-words-read-as-the-puzzle-says"),
+    pytest.param(FLIPPED, "<answer>Zoey is a truth-teller, Oliver is a liar</answer>", id="swapped-words-descriptive"),
+])
+def test_knights_reads_the_puzzles_role_words(reference, completion):
+    v = KnightsKnavesVerifier().check(completion, reference)
+    assert v.reason == "correct", v
+
+
+@pytest.mark.parametrize("reference,completion,reason", [
+    pytest.param(SAINTS, "<answer>Alice is a saint, Bob is a sinner, Carol is a sinner</answer>", "wrong: Carol", id="wrong"),
+    pytest.param(SAINTS, "<answer>Alice is a sinner, Bob is a saint, Carol is a sinner</answer>", "wrong: Alice, Bob, Carol",
+                 id="all-wrong"),
+    pytest.param(SAINTS, "<answer>Alice is an angel, Bob is a devil, Carol is an angel</answer>",
+                 "uses role words not in this puzzle (angel, devil; the puzzle's are saint/sinner)", id="another-pair"),
+    pytest.param(SAINTS, "<answer>Alice is a saint, Bob is a devil, Carol is a saint</answer>",
+                 "uses role words not in this puzzle (devil; the puzzle's are saint/sinner)", id="one-word-of-another-pair"),
+    pytest.param(SAINTS, "<answer>Alice is a saint or a sinner, Bob is a sinner, Carol is a saint</answer>", "hedged answer",
+                 id="hedge"),
+    pytest.param(SAINTS, "<answer>Alice is a saint and a knave, Bob is a sinner, Carol is a saint</answer>",
+                 "contradictory: Alice called both saint and sinner", id="two-forms-contradict"),
+    pytest.param(SAINTS, "<answer>Alice is a saint, Bob is a sinner</answer>", "unassigned: Carol", id="unassigned"),
+    pytest.param(SAINTS, "<answer>Alice is a saint, Bob is a sinner, Carol is a saint, Zed is a saint</answer>",
+                 "assigns Zed, who is not in the puzzle", id="stranger"),
+    pytest.param(FLIPPED, "<answer>Zoey is a knight, Oliver is a knave</answer>", "wrong: Zoey, Oliver",
+                 id="standard-reading-of-swapped-words"),
+    pytest.param(FLIPPED, "<answer>Zoey is a knave (a liar), Oliver is a knight</answer>",
+                 "contradictory: Zoey called both knave and knight", id="swapped-words-mixed-ambiguously"),
+    pytest.param(KK_DATASET, "<answer>Zoey is a saint, Oliver is a sinner</answer>",
+                 "uses role words not in this puzzle (saint, sinner; the puzzle's are hero/villain)", id="kk-other-pair"),
+    pytest.param(KK, "<answer>Alice is a saint, Bob is a sinner, Carol is a saint</answer>",
+                 "uses role words not in this puzzle (saint, sinner; the puzzle's are knight/knave)", id="default-puzzle-other-pair"),
+])
+def test_knights_rejects_wrong_role_words(reference, completion, reason):
+    v = KnightsKnavesVerifier().check(completion, reference)
+    assert (v.score, v.reason) == (0.0, reason)
+
+
+def test_knights_role_words_in_the_default_puzzle():
+    v = KnightsKnavesVerifier()
+    assert v.check("<answer>Alice is a truth-teller, Bob is a liar, Carol is a truth-teller</answer>", KK).passed
+    assert v.check("<answer>KNIGHTS: Alice, Carol; KNAVES: Bob</answer>", KK).passed
+
+
+def test_knights_generate_with_roles():
+    items = knights.generate(8, seed=1, roles=("hero", "villain"))
+    plain = knights.generate(8, seed=1)
+    assert [x["reference"]["statements"] for x in items] == [x["reference"]["statements"] for x in plain]
+    assert "roles" not in plain[0]["reference"] and "knight" in plain[0]["prompt"]
+    for item in items:
+        ref = item["reference"]
+        assert ref["roles"] == ["hero", "villain"] and set(ref["solution"].values()) <= {"hero", "villain"}
+        assert "knight" not in item["prompt"] and "a hero, who always tells the truth" in item["prompt"]
+        assert KnightsKnavesVerifier().check(item["gold"], ref).passed
+        assert LOGIC.check(item["gold"], ref).passed
+        swapped = item["gold"].replace("villain", "@").replace("hero", "villain").replace("@", "hero")
+        assert not KnightsKnavesVerifier().check(swapped, ref).passed
+    flipped = knights.retheme(plain[0], ("knave", "knight"))
+    assert flipped["reference"]["roles"] == ["knave", "knight"]
+    assert KnightsKnavesVerifier().check(flipped["gold"], flipped["reference"]).passed
+    assert not KnightsKnavesVerifier().check(plain[0]["gold"], flipped["reference"]).passed
+    with pytest.raises(ValueError):
+        knights.generate(2, roles=("saint", "saint"))
+
+
+def test_knights_role_reference_validation():
+    v = KnightsKnavesVerifier()
+    with pytest.raises(ValueError):
+        v.check("x", dict(SAINTS, roles=["saint"]))
+    with pytest.raises(ValueError):  # a value that is neither the puzzle's words nor knight/knave
+        v.check("x", dict(SAINTS, solution={"Alice": "saint", "Bob": "angel", "Carol": "saint"}))
+    with pytest.raises(ValueError):
+        v.check("x", dict(KK_DATASET, solution=[True]))
 
 
 def test_knights_reference_validation():

@@ -145,3 +145,69 @@ def test_huge_outputs_are_handled():
 def test_details_are_reported():
     v = V.check(r"so $\boxed{\dfrac{2}{4}}$", "0.5")
     assert v.details == {"rule": "boxed", "extracted": r"\dfrac{2}{4}", "normalized": "1/2", "gold": "1/2"}
+
+
+# ------------------------------------------------------------------ retractions and negations
+@pytest.mark.parametrize("text,gold,score", [
+    pytest.param("It isn't 8; it's 9.", "9", 1.0, id="prose-negation-then-answer"),
+    pytest.param("It isn't 8; it's 9.", "8", 0.0, id="prose-negated-value-is-not-the-answer"),
+    pytest.param("The answer isn't 8; it's 9.", "9", 1.0, id="negated-phrase-then-answer"),
+    pytest.param("The answer isn't 8; it's 9.", "8", 0.0, id="negated-phrase-is-not-its-value"),
+    pytest.param("I guessed the answer is 5. The answer isn't 8; it's 9.", "9", 1.0, id="negated-phrase-is-the-last-phrase"),
+    pytest.param("The answer is not 8; it is 9.", "9", 1.0, id="not-x-semicolon-y"),
+    pytest.param("The answer is not 8 but 9.", "9", 1.0, id="not-x-but-y"),
+    pytest.param("The answer is not 8. It's 9.", "9", 1.0, id="not-x-next-sentence"),
+    pytest.param("The answer: it isn't 8; it's 9.", "9", 1.0, id="inside-the-phrase-value"),
+    pytest.param("<answer>It isn't 8; it's 9.</answer>", "9", 1.0, id="inside-the-tag"),
+    pytest.param(r"\boxed{8}. Hmm, it isn't 8, it's 9.", "9", 1.0, id="boxed-then-negated-restatement"),
+    pytest.param(r"\boxed{8}. Hmm, it isn't 8, it's 9.", "8", 0.0, id="negated-restatement-voids-the-box"),
+    pytest.param("The answer is 8. Actually, 8 is wrong; it's 9.", "9", 1.0, id="value-is-wrong"),
+    pytest.param("The answer is 2. Hmm, the answer is not 2.", "2", 0.0, id="negated-restatement-nothing-after"),
+    pytest.param("The answer is 2. The answer is not 3.", "2", 1.0, id="negating-another-value-keeps-the-answer"),
+    pytest.param(r"\boxed{5} Note that it is not 5 in base 10.", "5", 1.0, id="negation-of-something-else"),
+    pytest.param(r"\boxed{7}. Note: option 7 is wrong.", "7", 1.0, id="third-person-value-is-not-retraction"),
+    pytest.param("It's 9, not 8.", "9", 1.0, id="negated-alternative-after"),
+    pytest.param("He is not 30, he is 35.", "35", 1.0, id="negated-alternative-before"),
+    pytest.param("Answer: 5 (not 6).", "5", 1.0, id="parenthetical-negation"),
+    pytest.param("I first got 16. The answer isn't 16; it's 21.\nNo wait, that's wrong. It's 25.", "25", 1.0,
+                 id="retraction-after-the-replacement"),
+    pytest.param(r"\boxed{8}. No, it's 9.", "9", 1.0, id="correction-with-a-value"),
+    pytest.param(r"\boxed{8}. Wait, actually the answer is 9.", "9", 1.0, id="correction-after-a-box"),
+    pytest.param("The answer is 8... no, it's 9.", "9", 1.0, id="correction-after-ellipsis"),
+    pytest.param(r"\boxed{8}. Is there another solution? No, it's unique.", "8", 1.0, id="no-without-a-value-is-not-a-correction"),
+    pytest.param("I got 7 but 7 is wrong, so 9", "9", 1.0, id="number-before-is-wrong-is-not-a-candidate"),
+])
+def test_negations_and_negated_restatements(text, gold, score):
+    v = V.check(text, gold)
+    assert v.score == score, v
+
+
+# ------------------------------------------------------------------ the last-number rule
+@pytest.mark.parametrize("text,gold,score", [
+    pytest.param("So the expression factors as (a-2)^2.", "(a-2)^2", 1.0, id="plain-expression"),
+    pytest.param("So the expression factors as (a-2)^2.", "2", 0.0, id="plain-expression-is-not-its-exponent"),
+    pytest.param("We look for two factors. So it factors as (b + 5)(b - 5).", "b^2-25", 1.0, id="plain-product"),
+    pytest.param("The expression simplifies to 2a + 3b.", "2a+3b", 1.0, id="plain-sum"),
+    pytest.param("Then 5x = 10, so x = 2.", "2", 1.0, id="numbers-after-an-expression-still-count"),
+    pytest.param("The area is 12 cm^2", "12", 1.0, id="exponent-is-not-a-candidate"),
+    pytest.param("So the speed is 12 m/s.", "12", 1.0, id="unit-letters-are-not-variables"),
+    pytest.param("In the x-y plane the distance is 5.", "5", 1.0, id="hyphenated-letters"),
+    pytest.param("Let f(x) = x^2 + 1, so f(2) = 5.", "5", 1.0, id="function-notation"),
+    pytest.param("The result is sqrt(x) + 1.", r"\sqrt{x}+1", 1.0, id="plain-function-names"),
+    pytest.param("Thus the derivative is 2 * (x + 3).", "2x+6", 1.0, id="plain-product-with-star"),
+])
+def test_last_number_rule_reads_plain_expressions(text, gold, score):
+    v = V.check(text, gold)
+    assert v.score == score, v
+
+
+def test_prose_bang_rules_in_extraction():
+    from verifiers.math_answer.extract import _prose_bangs
+
+    assert _prose_bangs("4!") == "4!"
+    assert _prose_bangs("(n+1)!").strip() == "(n+1)!"
+    assert _prose_bangs("5 apples!").strip() == "5 apples"
+    assert _prose_bangs("$5$!").strip() == "$5$"
+    assert _prose_bangs("$4!$") == "$4!$"
+    assert _prose_bangs("x != 3") == "x != 3"
+    assert _prose_bangs("12!!!").strip() == "12"

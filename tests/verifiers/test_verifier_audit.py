@@ -62,6 +62,50 @@ def test_math_audit_is_clean_on_its_own_problems():
     assert report.timeouts == 0 and report.crashes == 0
 
 
+MATH_CATEGORY_LABELS = (
+    "factorial of the answer", "factorial in prose", "factorial form", "number words", "wrong number words",
+    "repeating decimal", "truncated decimal", "space thousands in prose", "retraction then answer",
+    "answer then retraction", "negated alternative", "negated answer phrase", "sign-blind identity",
+    "absolute value added", "absolute value dropped", "matrix entry changed", "matrix flattened",
+    "matrix transposed", "vector as a tuple", "vector transposed", "unevaluated arithmetic")
+
+
+def test_math_audit_covers_every_answer_category():
+    from verifiers.math_answer.verifier import _GENERATORS
+
+    v = get_verifier("math")
+    n = 2 * len(_GENERATORS)
+    report = run_audit(v, v.audit_problems(n, seed=1), workers=2, huge_problems=0)
+    assert report.ok, report.format()
+    labels = report.by_label()
+    for label in MATH_CATEGORY_LABELS:
+        assert labels.get(label, {}).get("run", 0) > 0, label
+    refs = [p.reference for p in v.audit_problems(n, seed=1)]
+    assert any("pmatrix" in r and "&" in r for r in refs) and any("|" in r for r in refs)
+
+
+def test_math_audit_in_strict_mode_is_clean():
+    strict = get_verifier("math", require_simplified=True)
+    problems = strict.audit_problems(27, seed=2)
+    report = run_audit(strict, problems, workers=2, huge_problems=0)
+    assert report.ok, report.format()
+    closed = [c for c in report.cases if c.label == "unevaluated arithmetic"]
+    assert closed and all(c.expected == 0.0 and c.score == 0.0 for c in closed)
+
+
+def test_knights_audit_is_clean_with_other_role_words():
+    v = get_verifier("knights_knaves")
+    problems = v.audit_problems(14, seed=0)
+    assert {tuple(p.reference.get("roles", ("knight", "knave"))) for p in problems} >= {
+        ("knight", "knave"), ("saint", "sinner"), ("hero", "villain"), ("truth-teller", "liar"), ("knave", "knight")}
+    report = run_audit(v, problems, workers=2, huge_problems=0)
+    assert report.ok, report.format()
+    labels = report.by_label()
+    for label in ("plural capitalised role words", "truth-teller / liar words", "knight / knave words",
+                  "standard reading of swapped words", "another puzzle's role words", "mixed words, one wrong"):
+        assert labels.get(label, {}).get("run", 0) > 0, label
+
+
 def test_naive_substring_check_is_caught():
     report = run_audit(Substring(), PROBLEMS, workers=1)
     assert not report.ok

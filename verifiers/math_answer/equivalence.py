@@ -11,7 +11,13 @@ from fractions import Fraction
 from typing import Any
 
 from verifiers.math_answer.guards import _sp
-from verifiers.math_answer.values import Interval, IntervalUnion, Relation, Scalar, Seq, Text, _free_symbols_of
+from verifiers.math_answer.values import (
+    Interval, IntervalUnion, Matrix, Relation, Scalar, Seq, Text, _free_symbols_of,
+)
+
+_PROBE_POINTS = 16  # candidate points per comparison (critical points first, then seeded random ones)
+_PROBE_ENOUGH = 6  # stop after this many points where both sides are defined and agree
+_PROBE_MIN = 3  # fewer valid points than this: inconclusive (sympy's simplify decides)
 
 
 # --------------------------------------------------------------------------------------
@@ -30,8 +36,7 @@ class _Outcome(Exception):
 @dataclass
 class _Cmp:
     rel_tol: float
-    allow_unevaluated: bool
-    probes: int = 5
+    require_simplified: bool = False
 
     # -- scalars
     def scalars(self, p: Scalar, g: Scalar, check_literal: bool = True) -> bool:
@@ -43,7 +48,7 @@ class _Cmp:
             ok = self._scalar_eq(base, other) or self._scalar_eq(scaled, other)
         else:
             ok = self._scalar_eq(p, g)
-        if ok and check_literal and not self.allow_unevaluated and g.literal and not p.literal and _is_rational(p):
+        if ok and check_literal and self.require_simplified and g.literal and not p.literal and _is_rational(p):
             raise _Outcome("unevaluated expression")
         return ok
 
@@ -60,10 +65,10 @@ class _Cmp:
         sp = _sp()
         if a == b:
             return True
-        if a.free_symbols != b.free_symbols:
-            return False
         tol = self.rel_tol if inexact else 1e-20
-        if not a.free_symbols:
+        # the union: "\cosh^2 u - \sinh^2 u" (symbol u) is the constant 1
+        symbols = sorted(a.free_symbols | b.free_symbols, key=lambda s: s.name)
+        if not symbols:
             return self._num_close(a, b, tol, {})
         diff = a - b
         if diff == 0:
@@ -73,23 +78,43 @@ class _Cmp:
                 return True
         except (TypeError, ValueError, ArithmeticError, AttributeError, NotImplementedError):
             pass
-        symbols = sorted(a.free_symbols, key=lambda s: s.name)
-        rng = random.Random(0x5EED)
-        verdicts = []
-        for _ in range(self.probes):
-            point = {s: sp.Rational(rng.randint(1100, 2900), 1000) for s in symbols}
-            verdicts.append(self._num_close(a, b, max(tol, 1e-25), point, strict=False))
-        if all(v is True for v in verdicts):
-            return True
-        if any(v is False for v in verdicts):
-            return False
-        # inconclusive (evaluation undefined at the probe points): ask simplify
+        verdict = self._probe(a, b, symbols, max(tol, 1e-25))
+        if verdict is not None:
+            return verdict
+        # inconclusive (too few points where both sides are defined): ask simplify
         try:
             return sp.simplify(diff) == 0
         except (TypeError, ValueError, ArithmeticError, AttributeError, NotImplementedError):
             return False
 
-    def _num_close(self, a, b, tol: float, point: dict, strict: bool = True):
+    def _probe(self, a, b, symbols: list, tol: float):
+        """Compare a and b at seeded points where both are defined (real-valued, every square
+        root / log / power argument in its real domain): True after enough agreeing points,
+        False at the first point where they differ, None when too few points were valid.
+
+        The points mix signs and magnitudes and are never integers; for one variable, points
+        between and beyond the real roots of each |.|, root, power or log argument come first,
+        so identities that hold only on part of the line (sqrt(t^2) = t, |t| = t) are refuted.
+        """
+        sp = _sp()
+        real = not (a.has(sp.I) or b.has(sp.I))
+        checks = _domain_checks(a) + _domain_checks(b) if real else []
+        points = _critical_points(checks, symbols) + _random_points(symbols, _PROBE_POINTS)
+        valid = 0
+        for point in points[:_PROBE_POINTS + 8]:
+            if real and not _in_domain(checks, point):
+                continue
+            verdict = self._num_close(a, b, tol, point, strict=False, real=real)
+            if verdict is None:
+                continue
+            if verdict is False:
+                return False
+            valid += 1
+            if valid >= _PROBE_ENOUGH:
+                return True
+        return True if valid >= _PROBE_MIN else None
+
+    def _num_close(self, a, b, tol: float, point: dict, strict: bool = True, real: bool = False):
         """True/False when both sides evaluate to finite numbers, None when undefined."""
         sp = _sp()
         try:
@@ -102,16 +127,24 @@ class _Cmp:
             if va == vb and va in (sp.oo, -sp.oo):
                 return True
             return False if strict else None
+        if real and point:
+            ia, ib = abs(sp.im(va)), abs(sp.im(vb))
+            if ia > 1e-30 * max(1, abs(va)) or ib > 1e-30 * max(1, abs(vb)):
+                return None  # complex on the real line: outside the domain
         scale = max(abs(va), abs(vb))
         d = abs(va - vb)
         if scale == 0:
             return True
+        if point and scale < 1e-30:
+            return True  # both vanish at this point to working precision (sin^2 x + cos^2 x - 1 vs 0)
         return bool(d <= tol * scale)
 
     # -- any values
     def values(self, p: Any, g: Any) -> bool:
         if isinstance(g, Text) or isinstance(p, Text):
             return isinstance(g, Text) and isinstance(p, Text) and p.text == g.text and bool(g.text)
+        if isinstance(g, Matrix) or isinstance(p, Matrix):
+            return self._matrices(p, g)
         # equations: compare right-hand sides unless both are equations
         if isinstance(g, Relation) and isinstance(p, Relation):
             return self._relations(p, g)
@@ -189,6 +222,22 @@ class _Cmp:
         pi, gi = _inequality_to_interval(p), _inequality_to_interval(g)
         return pi is not None and gi is not None and self.values(pi, gi)
 
+    def _matrices(self, p: Any, g: Any) -> bool:
+        """Entrywise, same shape; a row or column vector also equals an ordered tuple of its entries."""
+        if isinstance(p, Relation) and all(op == "=" for op in p.ops):
+            p = p.operands[-1]
+        pe, ge = _matrix_entries(p), _matrix_entries(g)
+        if pe is None or ge is None:
+            return False
+        (pshape, pitems), (gshape, gitems) = pe, ge
+        if pshape is None and gshape is None:
+            return False
+        if pshape != gshape:
+            other = gshape if pshape is None else pshape if gshape is None else None
+            if other is None or other[0] != "vector":
+                return False  # different shapes; a tuple matches only a row or column vector
+        return len(pitems) == len(gitems) and all(self.scalars(x, y) for x, y in zip(pitems, gitems))
+
     @staticmethod
     def _same_symbol(a: Scalar, b: Scalar) -> bool:
         return a.node[0] == "sym" and a.node == b.node
@@ -233,6 +282,112 @@ class _Cmp:
             return self._item_eq(p, g)
         except _Outcome:
             return False
+
+
+def _matrix_entries(v: Any):
+    """(shape, entries) of a matrix, (None, entries) of a vector written as a tuple, else None."""
+    if isinstance(v, Matrix):
+        shape = v.shape
+        if shape[0] != 1 and shape[1] != 1:
+            return shape, [x for row in v.rows for x in row]
+        # a vector: a tuple of the same entries matches it in either orientation
+        return ("vector", shape), [x for row in v.rows for x in row]
+    if isinstance(v, Seq) and v.kind in ("tuple", "pair") and all(isinstance(x, Scalar) for x in v.items):
+        return None, list(v.items)
+    return None
+
+
+def _domain_checks(expr) -> list:
+    """(kind, argument) for each node whose real domain is restricted and whose argument has symbols."""
+    sp = _sp()
+    out = []
+    for node in sp.preorder_traversal(expr):
+        if node.is_Pow:
+            base, exp = node.args
+            if not exp.is_Integer and base.free_symbols:
+                out.append(("pos" if exp.is_negative else "nonneg", base))
+            if not exp.is_number and exp.free_symbols:
+                out.append(("pos", base))
+        elif node.func in (sp.log,) and node.args[0].free_symbols:
+            out.append(("pos", node.args[0]))
+        elif node.func in (sp.asin, sp.acos) and node.args[0].free_symbols:
+            out.append(("unit", node.args[0]))
+        elif node.func is sp.acosh and node.args[0].free_symbols:
+            out.append(("ge1", node.args[0]))
+        elif node.func is sp.atanh and node.args[0].free_symbols:
+            out.append(("in1", node.args[0]))
+        elif node.func in (sp.Abs, sp.sign) and node.args[0].free_symbols:
+            out.append(("any", node.args[0]))  # no restriction, but its roots are critical points
+        if len(out) > 12:
+            break
+    return out
+
+
+def _in_domain(checks: list, point: dict) -> bool:
+    sp = _sp()
+    for kind, arg in checks:
+        if kind == "any":
+            continue
+        try:
+            v = sp.N(arg, 30, subs=point)
+        except (TypeError, ValueError, ArithmeticError, AttributeError, NotImplementedError):
+            return False
+        if not v.is_number or v in (sp.nan, sp.zoo, sp.oo, -sp.oo):
+            return False
+        if abs(sp.im(v)) > 1e-25 * max(1, abs(v)):
+            return False
+        v = sp.re(v)
+        if (kind == "pos" and not v > 0 or kind == "nonneg" and not v >= 0 or kind == "unit" and not abs(v) <= 1
+                or kind == "ge1" and not v >= 1 or kind == "in1" and not abs(v) < 1):
+            return False
+    return True
+
+
+def _critical_points(checks: list, symbols: list) -> list:
+    """For one variable: points between and beyond the real roots of the restricted arguments."""
+    if len(symbols) != 1 or not checks:
+        return []
+    sp = _sp()
+    x = symbols[0]
+    roots: set = set()
+    for _, arg in checks[:6]:
+        try:
+            num, _den = sp.fraction(sp.together(arg))
+            for part in (num, _den):
+                if not part.free_symbols:
+                    continue
+                poly = sp.Poly(part, x)
+                if poly.degree() < 1 or poly.degree() > 8 or not poly.is_univariate:
+                    continue
+                for r in poly.sqf_part().nroots(n=15, maxsteps=60):  # square-free: simple roots converge
+                    if abs(sp.im(r)) < 1e-9:
+                        roots.add(round(float(sp.re(r)), 9))
+        except Exception:  # noqa: BLE001  (sympy / mpmath raise many kinds; no critical points then)
+            continue
+    if not roots:
+        return []
+    ordered = sorted(roots)[:8]
+    cuts = [ordered[0] - 1.0137] + [(u + v) / 2 + 0.0137 * (v - u) for u, v in zip(ordered, ordered[1:])]
+    cuts.append(ordered[-1] + 1.0137)
+    return [{x: sp.Rational(round(c * 10000), 10000)} for c in cuts]
+
+
+def _random_points(symbols: list, n: int) -> list:
+    """Seeded points: every sign pattern of the first four variables, small then larger magnitudes,
+    never integers (odd numerators over 1000)."""
+    sp = _sp()
+    rng = random.Random(0x5EED)
+    points = []
+    for i in range(n):
+        point = {}
+        for j, sym in enumerate(symbols):
+            negative = (i >> j) & 1 if j < 4 else rng.random() < 0.5
+            mag = rng.randrange(151, 2950, 2) if i < n // 2 else rng.randrange(3001, 12000, 2)
+            point[sym] = sp.Rational(-mag if negative else mag, 1000)
+        points.append(point)
+    # interleave so that every sign pattern is met early and both magnitude ranges are tried
+    half = n // 2
+    return [p for pair in zip(points[:half], points[half:]) for p in pair] + points[2 * half:]
 
 
 def _is_rational(v: Scalar) -> bool:

@@ -49,11 +49,255 @@ def _unwrap_text_commands(s: str) -> str:
     return s
 
 
+# --------------------------------------------------------------------------------------
+# Repeating decimals: 1.\overline{45}, 0.\dot{3}, 0.1\dot{4}2\dot{8}, 0.(3), 0.333...
+# --------------------------------------------------------------------------------------
+
+_REPEAT_BAR_RE = re.compile(r"(?<![\d.])(\d*)\.(\d*)\s*\\(?:overline|bar|overbrace)\s*(?:\{\s*(\d+)\s*\}|(\d))")
+_REPEAT_DOTS_RE = re.compile(r"(?<![\d.])(\d*)\.(\d*)\s*\\dot\s*\{?\s*(\d)\s*\}?(?:(\d*)\s*\\dot\s*\{?\s*(\d)\s*\}?)?")
+_REPEAT_PAREN_RE = re.compile(r"(?<![\d.])(\d+)\.(\d*)\((\d+)\)")
+_ELLIPSIS_RE = re.compile(r"(?<![\d.])(\d+)\.(\d+)\s*(?:\.{3}|\\[lc]?dots(?![A-Za-z]))")
+
+
+def _repeating_value(whole: str, fixed: str, block: str) -> str:
+    """whole.fixed(block)(block)... as an exact fraction, "(p/q)" (an integer when q is 1)."""
+    from fractions import Fraction
+
+    if len(fixed) + len(block) > 40:
+        raise Unparseable("repeating decimal too long")
+    value = Fraction(int(whole or "0")) + Fraction(int(fixed + block) - int(fixed or "0"),
+                                                   10 ** len(fixed) * (10 ** len(block) - 1))
+    return str(value.numerator) if value.denominator == 1 else f"({value.numerator}/{value.denominator})"
+
+
+def _ellipsis(m: re.Match) -> str:
+    whole, digits = m.group(1), m.group(2)
+    for size in range(1, 7):  # the shortest block repeated at the end: 0.333..., 0.1666..., 0.4545...
+        block = digits[-size:]
+        if len(block) < size:
+            break
+        reps = 0
+        while digits.endswith(block * (reps + 1)):
+            reps += 1
+        if reps >= 2:
+            return _repeating_value(whole, digits[: len(digits) - size * reps], block)
+    return f"{whole}.{digits}"  # no repetition: a truncated decimal, read as written
+
+
+def _repeating_decimals(s: str) -> str:
+    if "\\" in s:
+        s = _REPEAT_BAR_RE.sub(lambda m: _repeating_value(m.group(1), m.group(2), m.group(3) or m.group(4)), s)
+        s = _REPEAT_DOTS_RE.sub(lambda m: _repeating_value(
+            m.group(1), m.group(2), m.group(3) + (m.group(4) or "") + (m.group(5) or "")), s)
+    if "(" in s:
+        s = _REPEAT_PAREN_RE.sub(lambda m: _repeating_value(m.group(1), m.group(2), m.group(3)), s)
+    if "..." in s or "dots" in s:
+        s = _ELLIPSIS_RE.sub(_ellipsis, s)
+    return s
+
+
+# --------------------------------------------------------------------------------------
+# Matrices: \begin{pmatrix} a & b \\ c & d \end{pmatrix} -> \matbegin a & b \matrow c & d \matend
+# --------------------------------------------------------------------------------------
+
+_MAT_ENVS = r"(?:pmatrix|bmatrix|Bmatrix|vmatrix|Vmatrix|matrix|smallmatrix|array)"
+_MAT_BEGIN_RE = re.compile(r"\\begin\s*\{\s*(" + _MAT_ENVS + r")\s*\}")
+_MAT_END_RE = re.compile(r"\\end\s*\{\s*" + _MAT_ENVS + r"\s*\}")
+
+
+def _matrices(s: str) -> str:
+    if not _MAT_BEGIN_RE.search(s):
+        return s
+
+    def begin(m: re.Match) -> str:
+        env = m.group(1)
+        if env in ("vmatrix", "Vmatrix"):
+            return " \\detbegin "
+        return " \\matbegin "
+
+    s = re.sub(r"\\begin\s*\{\s*array\s*\}\s*\{[^{}]*\}", r"\\begin{array}", s)  # drop the column spec
+    s = _MAT_BEGIN_RE.sub(begin, s)
+    s = _MAT_END_RE.sub(lambda m: " \\matend ", s)
+    s = re.sub(r"\\hline(?![A-Za-z])", " ", s)
+    return re.sub(r"\\\\(?:\s*\[[^\]]{0,10}\])?|\\cr(?![A-Za-z])", lambda m: " \\matrow ", s)
+
+
+# --------------------------------------------------------------------------------------
+# Number words: "nine", "forty-two", "two thousand", "one hundred and five", "two thirds"
+# --------------------------------------------------------------------------------------
+
+_NW_UNITS = {"zero": 0, "one": 1, "two": 2, "three": 3, "four": 4, "five": 5, "six": 6, "seven": 7, "eight": 8,
+             "nine": 9, "ten": 10, "eleven": 11, "twelve": 12, "thirteen": 13, "fourteen": 14, "fifteen": 15,
+             "sixteen": 16, "seventeen": 17, "eighteen": 18, "nineteen": 19}
+_NW_TENS = {"twenty": 20, "thirty": 30, "forty": 40, "fifty": 50, "sixty": 60, "seventy": 70, "eighty": 80,
+            "ninety": 90}
+_NW_SCALES = {"hundred": 100, "thousand": 10 ** 3, "million": 10 ** 6, "billion": 10 ** 9, "trillion": 10 ** 12}
+_NW_DENOMS = {"half": 2, "halves": 2, "third": 3, "thirds": 3, "quarter": 4, "quarters": 4, "fourth": 4,
+              "fourths": 4, "fifth": 5, "fifths": 5, "sixth": 6, "sixths": 6, "seventh": 7, "sevenths": 7,
+              "eighth": 8, "eighths": 8, "ninth": 9, "ninths": 9, "tenth": 10, "tenths": 10, "hundredth": 100,
+              "hundredths": 100, "thousandth": 1000, "thousandths": 1000}
+_NW_WORDS = set(_NW_UNITS) | set(_NW_TENS) | set(_NW_SCALES) | set(_NW_DENOMS)
+_NW_ALT = "|".join(sorted(_NW_WORDS, key=len, reverse=True))
+_NW_RUN_RE = re.compile(
+    r"(?i)(?<![\w\\])(?:(?:minus|negative)\s+)?(?:an?\s+(?=(?:%s)\b))?(?:%s)"
+    r"(?:(?:\s*-\s*|\s+(?:and\s+(?:an?\s+)?)?|\s+point\s+)(?:%s))*(?![\w])" % (
+        "|".join(list(_NW_SCALES) + list(_NW_DENOMS)), _NW_ALT, _NW_ALT))
+_DIGITS_SCALE_RE = re.compile(r"(?i)(?<![\w.])(\d+(?:\.\d+)?)\s+(hundred|thousand|million|billion|trillion)\b(?!\s+(?:and\b|\w+th))")
+# "the two numbers", "each one", "no one": a number word after these is not the answer
+_NW_BLOCKED_BEFORE = {"the", "these", "those", "all", "both", "each", "every", "first", "last", "next", "other",
+                      "another", "any", "some", "which", "what", "whose", "no", "my", "our", "your", "their",
+                      "his", "her", "its", "this", "that", "such", "same", "only"}
+_NW_ONE_OK_BEFORE = {"is", "be", "equals", "equal", "exactly", "approximately", "about", "around", "roughly",
+                     "just", "answer", "was", "are", "get", "gives", "makes", "minus", "negative", "plus", "to"}
+
+
+def _nw_cardinal(words: list[str]) -> int | None:
+    if not words:
+        return None
+    total, current, last, last_scale = 0, 0, None, None
+    for k, w in enumerate(words):
+        if w in ("a", "an"):
+            if k != 0 or len(words) < 2 or words[1] not in _NW_SCALES:
+                return None
+            current, last = 1, "unit"
+        elif w == "and":
+            if last not in ("hundred", "scale") or k + 1 >= len(words) or words[k + 1] not in _NW_UNITS and words[k + 1] not in _NW_TENS:
+                return None
+        elif w in _NW_UNITS:
+            v = _NW_UNITS[w]
+            if last in ("unit", "teen") or (last == "tens" and not 0 < v < 10) or (v == 0 and len(words) > 1):
+                return None
+            current += v
+            last = "teen" if v >= 10 else "unit"
+        elif w in _NW_TENS:
+            if last in ("unit", "teen", "tens"):
+                return None
+            current += _NW_TENS[w]
+            last = "tens"
+        elif w == "hundred":
+            if last == "hundred" or current >= 100:
+                return None
+            current = (current or 1) * 100
+            last = "hundred"
+        elif w in _NW_SCALES:
+            scale = _NW_SCALES[w]
+            if last_scale is not None and scale >= last_scale:
+                return None
+            total += (current or (1 if k == 0 else 0)) * scale
+            if k and not current:
+                return None
+            current, last, last_scale = 0, "scale", scale
+        else:
+            return None
+    return total + current
+
+
+def _nw_value(words: list[str]):
+    """The value of a run of number words (int, Fraction, or a decimal string), or None."""
+    from fractions import Fraction
+
+    neg = bool(words) and words[0] in ("minus", "negative")
+    if neg:
+        words = words[1:]
+    if not words:
+        return None
+    if "point" in words:
+        i = words.index("point")
+        whole = _nw_cardinal(words[:i]) if i else 0
+        digits = words[i + 1:]
+        if whole is None or not digits or any(d not in _NW_UNITS or _NW_UNITS[d] > 9 for d in digits):
+            return None
+        return ("-" if neg else "") + f"{whole}." + "".join(str(_NW_UNITS[d]) for d in digits)
+    if words[-1] in _NW_DENOMS:
+        den = _NW_DENOMS[words[-1]]
+        head = words[:-1]
+        whole = 0
+        if "and" in head:
+            j = len(head) - 1 - head[::-1].index("and")
+            whole = _nw_cardinal(head[:j])
+            head = head[j + 1:]
+            if whole is None:
+                return None
+        if head in (["a"], ["an"]):
+            num = 1
+        else:
+            num = _nw_cardinal(head)
+            if num is None or num >= 100:
+                return None
+        if words[-1] in ("half", "halves") and num != 1 and not whole:
+            return None  # "two halves" is not an answer
+        value = whole + Fraction(num, den)
+        return -value if neg else value
+    value = _nw_cardinal(words)
+    if value is None:
+        return None
+    return -value if neg else value
+
+
+def _fmt_number(value) -> str:
+    if isinstance(value, str):
+        return value
+    if isinstance(value, int):
+        return str(value)
+    if value.denominator == 1:
+        return str(value.numerator)
+    return f"({value.numerator}/{value.denominator})"
+
+
+def _number_words(s: str) -> str:
+    """Replace number words by digits where they state a number (see "Number words" in the docstring)."""
+    low = s.lower()
+    if not any(w in _NW_WORDS for w in re.findall(r"[a-z]+", low)):
+        return s
+    s = _DIGITS_SCALE_RE.sub(lambda m: _fmt_number(_scaled(m.group(1), m.group(2))), s)
+    out, pos = [], 0
+    for m in _NW_RUN_RE.finditer(s):
+        words = re.findall(r"[a-z]+", m.group(0).lower())
+        value = _nw_value(words)
+        if value is None or not _nw_allowed(s, m.start(), m.end(), words):
+            continue
+        out.append(s[pos:m.start()])
+        out.append(" " + _fmt_number(value) + " ")
+        pos = m.end()
+    out.append(s[pos:])
+    return "".join(out)
+
+
+def _scaled(digits: str, scale: str):
+    from fractions import Fraction
+
+    value = Fraction(digits) * _NW_SCALES[scale.lower()]
+    return int(value) if value.denominator == 1 else value
+
+
+def _nw_allowed(s: str, start: int, end: int, words: list[str]) -> bool:
+    before = re.search(r"([A-Za-z']+|\S)\s*$", s[:start])
+    prev = before.group(1).lower() if before else None
+    after = re.match(r"\s*([A-Za-z']+)", s[end:])
+    nxt = after.group(1).lower() if after else None
+    if nxt in ("of", "another"):
+        return False  # "one of the roots", "two of them"
+    if prev in _NW_BLOCKED_BEFORE:
+        return False
+    if words == ["one"]:  # mostly a pronoun ("the larger one"): only right after "is", "=", ... or first
+        return prev is None or prev in _NW_ONE_OK_BEFORE or prev in ("=", ":", "(", "-", "+", ",")
+    return True
+
+
+_CHOOSE_RE = re.compile(r"\{([^{}]*)\\choose(?![A-Za-z])([^{}]*)\}")
+
+
 def clean_answer(s: str, merge_thousands: bool = True) -> str:
     """Normalise the surface of an extracted answer (see the package docstring)."""
     s = _UNICODE_RE.sub(lambda m: _UNICODE[m.group(0)], s)
     s = s.replace("`", " ")
+    if "\\" in s:
+        s = _matrices(s)
+        if "choose" in s:
+            s = _CHOOSE_RE.sub(r"\\binom{\1}{\2}", s)
+    s = _repeating_decimals(s)
     s = _unwrap_text_commands(s)
+    s = _number_words(s)
     s = _SIZING_RE.sub(" ", s)
     s = re.sub(r"\\[dtc]frac(?![A-Za-z])", r"\\frac", s)
     s = re.sub(r"\\frac\s*(\d)\s*(\d)", r"\\frac{\1}{\2}", s)
@@ -73,8 +317,13 @@ def clean_answer(s: str, merge_thousands: bool = True) -> str:
     if merge_thousands:
         s = re.sub(r"(?<![\d.,])\d{1,3}(?:,\d{3})+(?![\d,])", lambda m: m.group(0).replace(",", ""), s)
         s = re.sub(r"(?<![\d.])\d{1,3}(?: \d{3})+(?![\d.])", lambda m: m.group(0).replace(" ", ""), s)
-    s = re.sub(r"[\s.,;:!?]+$", "", s)
-    s = re.sub(r"^[\s:,;]+", "", s)
+    # a trailing "!" is a factorial here (prose "!" is dropped at extraction); markdown emphasis
+    # ("*5*", "_5_") and quotes around the whole answer ("'seven'") are not part of it
+    s = re.sub(r"[\s.,;:?*_]+$", "", s)
+    s = re.sub(r"^[\s:,;*_]+", "", s)
+    quoted = re.fullmatch(r"([\"'])(.+)\1", s)
+    if quoted:
+        s = re.sub(r"[\s.,;:?*_]+$", "", quoted.group(2)).strip()
     s = re.sub(r"\s+", " ", s)
     return s
 
@@ -88,7 +337,7 @@ _TOKEN_RE = re.compile(
     r"|(?P<num>(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+(?![A-Za-z0-9]))?)"
     r"|(?P<cmd>\\(?:[A-Za-z]+|[{}|]))"
     r"|(?P<word>[A-Za-z]+(?:'[A-Za-z]+)?)"
-    r"|(?P<op>\*\*|<=|>=|!=|==|[-+*/^!%=<>(),;\[\]{}|_:&])"
+    r"|(?P<op>\*\*|!!|<=|>=|!=|==|[-+*/^!%=<>(),;\[\]{}|_:&])"
     r"|(?P<junk>.)",
     re.S,
 )
@@ -123,6 +372,8 @@ _CMD_MAP = {
     "frac": ("cmd", "frac"), "sqrt": ("cmd", "sqrt"), "binom": ("cmd", "binom"),
     "dbinom": ("cmd", "binom"), "tbinom": ("cmd", "binom"), "lbrace": ("op", "\\{"),
     "rbrace": ("op", "\\}"), "langle": ("op", "("), "rangle": ("op", ")"), "in": ("op", "in"),
+    "matbegin": ("op", "matbegin"), "matend": ("op", "matend"), "matrow": ("op", "matrow"),
+    "detbegin": ("op", "detbegin"), "lbrack": ("op", "["), "rbrack": ("op", "]"),
 }
 
 
@@ -181,7 +432,7 @@ def tokenize(s: str, numeric_mode: bool = False) -> list[_Tok]:
 
 
 _ITEM_START_KINDS = {"num", "sym", "const", "func", "cmd", "empty"}
-_ITEM_START_OPS = {"(", "[", "{", "\\{", "-", "+", "pm", "mp", "|"}
+_ITEM_START_OPS = {"(", "[", "{", "\\{", "-", "+", "pm", "mp", "|", "matbegin", "detbegin"}
 _IMPLICIT_KINDS = {"sym", "const", "func", "cmd"}
 _REL_OPS = {"=", "<", ">", "<=", ">=", "!="}
 
@@ -324,7 +575,8 @@ class _Parser:
             if tok.kind == "op" and tok.text in ("*", "/"):
                 self.take()
                 factors.append((self.parse_signed_power(), 1 if tok.text == "*" else -1))
-            elif tok.kind in _IMPLICIT_KINDS or (tok.kind == "op" and tok.text == "("):
+            elif (tok.kind in _IMPLICIT_KINDS or (tok.kind == "op" and tok.text == "(")
+                  or (tok.kind == "num" and factors[-1][0][0] in ("fact", "fact2"))):  # 4!2! = 4! * 2!
                 factors.append((self.parse_power(), 1))
             else:
                 break
@@ -367,12 +619,16 @@ class _Parser:
 
     def parse_postfix(self) -> tuple:
         node = self.parse_primary()
+        bang = False
         while True:
-            if self.is_op("!"):
-                self.take()
-                node = ("fact", node)
+            if self.is_op("!") or self.is_op("!!"):
+                if bang:
+                    raise Unparseable("ambiguous run of '!'")
+                bang = True
+                node = ("fact" if self.take().text == "!" else "fact2", node)
             elif self.is_op("%"):
                 self.take()
+                bang = False
                 node = ("pct", node)
             else:
                 return node
@@ -471,6 +727,10 @@ class _Parser:
         if k == "op":
             if t in ("(", "[", "{", "\\{"):
                 return self.parse_bracketed(t)
+            if t == "matbegin":
+                return self.parse_matrix()
+            if t == "detbegin":
+                raise Unparseable("a determinant (vmatrix) is not a value")
             if t == "|":
                 inner = self.parse_sum()
                 self.expect("|")
@@ -478,6 +738,37 @@ class _Parser:
         if k == "word" and self.numeric_mode:
             raise Unparseable(f"unexpected word {t!r}")
         raise Unparseable(f"unexpected {t!r}")
+
+    def parse_matrix(self) -> tuple:
+        """Rows of entries after \\matbegin: `a & b \\matrow c & d \\matend` (a trailing row break is allowed)."""
+        rows: list[list[tuple]] = [[]]
+        count = 0
+        while True:
+            tok = self.peek()
+            if tok is None:
+                raise Unparseable("unclosed matrix")
+            if tok.kind == "op" and tok.text == "matend":
+                self.take()
+                break
+            if tok.kind == "op" and tok.text == "matrow":
+                self.take()
+                rows.append([])
+                continue
+            rows[-1].append(self.parse_item())
+            count += 1
+            if count > MAX_ITEMS:
+                raise Unparseable("matrix too large")
+            if self.is_op("&"):
+                self.take()
+                if self.is_op("&") or self.is_op("matrow") or self.is_op("matend"):
+                    raise Unparseable("empty matrix entry")
+            elif not (self.is_op("matrow") or self.is_op("matend")):
+                tok = self.peek()
+                raise Unparseable(f"unexpected {tok.text!r} in a matrix" if tok else "unclosed matrix")
+        rows = [r for r in rows if r]
+        if not rows or any(len(r) != len(rows[0]) for r in rows):
+            raise Unparseable("ragged or empty matrix")
+        return ("matrix", rows)
 
     def subscript_text(self) -> str:
         if self.is_op("{"):

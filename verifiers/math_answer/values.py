@@ -15,7 +15,7 @@ from verifiers.math_answer.guards import (
     DEFAULT_BUDGET, MAX_DIGITS, MAX_FACTORIAL, MAX_PM, Unparseable, _BudgetExceeded, _CallBudget, _sp,
 )
 from verifiers.math_answer.normalize import (
-    _CONNECTIVES, _CONST_WORDS, _FUNCS, _unwrap_text_commands, clean_answer, parse_answer_text,
+    _CONNECTIVES, _CONST_WORDS, _FUNCS, _number_words, _unwrap_text_commands, clean_answer, parse_answer_text,
 )
 
 
@@ -86,6 +86,18 @@ class Relation:
         for op, v in zip(self.ops, self.operands[1:]):
             out += f" {op} {v.show()}"
         return out
+
+
+@dataclass
+class Matrix:
+    rows: list  # rows of Scalars, rectangular
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return len(self.rows), len(self.rows[0])
+
+    def show(self) -> str:
+        return "[" + ", ".join("[" + ", ".join(v.show() for v in row) + "]" for row in self.rows) + "]"
 
 
 @dataclass
@@ -180,13 +192,14 @@ def _frac_eval(node: tuple) -> tuple[Fraction, bool] | None:
     if kind == "pct":
         v = _frac_eval(node[1])
         return None if v is None else (v[0] / 100, v[1])
-    if kind == "fact":
+    if kind in ("fact", "fact2"):
         v = _frac_eval(node[1])
         if v is None or v[0].denominator != 1 or v[0] < 0:
             return None
         if v[0] > MAX_FACTORIAL:
             raise Unparseable("number too large")
-        return Fraction(math.factorial(int(v[0]))), v[1]
+        n = int(v[0])
+        return Fraction(math.factorial(n) if kind == "fact" else math.prod(range(n, 0, -2))), v[1]
     if kind == "binom":
         n, k = _frac_eval(node[1]), _frac_eval(node[2])
         if n is None or k is None or n[0].denominator != 1 or k[0].denominator != 1 or n[0] < 0:
@@ -222,9 +235,10 @@ def _is_literal(node: tuple) -> bool:
         return _is_literal(node[1])
     if kind == "mul" and len(node[1]) == 2:
         (a, pa), (b, pb) = node[1]
-        if pa == 1 and pb == -1:  # a/b, \frac{a}{b}
+        if pa == 1 and pb == -1:  # a/b, \frac{a}{b}, \frac{-3}{4}, \frac{3}{-4}
             a_inner = a[1] if a[0] == "neg" else a
-            return _is_int_num(a_inner) and _is_int_num(b)
+            b_inner = b[1] if b[0] == "neg" else b
+            return _is_int_num(a_inner) and _is_int_num(b_inner)
         if pa == 1 and pb == 1 and a[0] == "num" and b[0] == "pow":  # m x 10^k
             return _is_ten_power(b)
     if kind == "pow":
@@ -243,7 +257,7 @@ def _to_sympy(node: tuple):
     """Build a sympy object from a scalar node, refusing numbers that would not fit."""
     sp = _sp()
     kind = node[0]
-    fr = _frac_eval(node) if kind in ("num", "mixed", "neg", "add", "mul", "pow", "fact", "binom", "pct") else None
+    fr = _frac_eval(node) if kind in ("num", "mixed", "neg", "add", "mul", "pow", "fact", "fact2", "binom", "pct") else None
     if fr is not None:
         return sp.Rational(fr[0].numerator, fr[0].denominator)
     if kind == "sym":
@@ -305,14 +319,17 @@ def _to_sympy(node: tuple):
         n = _to_sympy(node[2])
         if n.is_Number and abs(n) > MAX_DIGITS:
             raise Unparseable("root index too large")
-        return sp.root(_to_sympy(node[1]), n)
+        arg = _to_sympy(node[1])
+        if n.is_Integer and n % 2 == 1 and arg.is_number and arg.is_extended_negative:
+            return -sp.root(-arg, n)  # \sqrt[3]{-8} is the real root -2, as a grader reads it
+        return sp.root(arg, n)
     if kind == "abs":
         return sp.Abs(_to_sympy(node[1]))
-    if kind == "fact":
+    if kind in ("fact", "fact2"):
         v = _to_sympy(node[1])
         if v.is_Number and (not v.is_Integer or v > MAX_FACTORIAL):
             raise Unparseable("factorial out of range")
-        return sp.factorial(v)
+        return sp.factorial(v) if kind == "fact" else sp.factorial2(v)
     if kind == "binom":
         return sp.binomial(_to_sympy(node[1]), _to_sympy(node[2]))
     if kind == "pct":
@@ -392,8 +409,16 @@ def build_value(node: tuple) -> Any:
                 raise Unparseable("union of non-intervals")
             out.append(p)
         return IntervalUnion(out)
+    if kind == "matrix":
+        rows = [[build_value(x) for x in row] for row in node[1]]
+        if not all(isinstance(v, Scalar) for row in rows for v in row):
+            raise Unparseable("matrix entries must be numbers or expressions")
+        return Matrix(rows)
     if kind == "rel":
         _, ops, operands = node
+        if all(op == "=" for op in ops) and operands[-1][0] in ("matrix", "seq"):
+            # \mathbf{v} = \begin{pmatrix}...\end{pmatrix}, (x, y) = (1, 2): the value is the right-hand side
+            return build_value(operands[-1])
         n_pm = _count_pm(node)
         if n_pm:  # x = (-b \pm \sqrt{d}) / 2a: one relation per sign choice
             if n_pm > MAX_PM:
@@ -425,6 +450,8 @@ def _free_symbols_of(v: Any) -> set:
         return set().union(*[_free_symbols_of(x) for x in v.items])
     if isinstance(v, Relation):
         return set().union(*[_free_symbols_of(x) for x in v.operands])
+    if isinstance(v, Matrix):
+        return set().union(*[_free_symbols_of(x) for row in v.rows for x in row])
     return set()
 
 
@@ -453,8 +480,10 @@ class Gold:
 def _looks_like_text(s: str) -> bool:
     stripped = _unwrap_text_commands(s).strip()
     words = re.findall(r"[A-Za-z]+", stripped)
-    if not words or re.search(r"[\d\\^=+*/]", stripped):
+    if not words or re.search(r"[\d\\^=+*/|]", stripped):
         return False
+    if not re.search(r"[A-Za-z]", _number_words(stripped)):
+        return False  # "forty-two" is a number
     return any(len(w) >= 2 and w.lower() not in _FUNCS and w.lower() not in _CONST_WORDS
                and w.lower() not in _CONNECTIVES for w in words)
 
@@ -474,9 +503,13 @@ def parse_gold(reference: str, budget: int = DEFAULT_BUDGET) -> Gold:
     try:
         with _CallBudget(budget):
             cleaned = clean_answer(raw, merge_thousands=True)
+            env = re.search(r"\\begin\s*\{\s*([A-Za-z*]+)\s*\}", cleaned)
+            if env is not None:
+                raise ValueError(f"unsupported reference {reference!r}: the \\begin{{{env.group(1)}}} environment is "
+                                 "not supported (matrices: pmatrix, bmatrix, Bmatrix, matrix, smallmatrix, array)")
             node = parse_answer_text(cleaned)
             value = build_value(node)
-            if isinstance(value, (Seq, Interval, IntervalUnion)):
+            if isinstance(value, (Seq, Interval, IntervalUnion, Matrix)):
                 # re-read without merging "1,234" so a tuple (1,234) stays a tuple
                 node = parse_answer_text(clean_answer(raw, merge_thousands=False))
                 value = build_value(node)
@@ -487,5 +520,5 @@ def parse_gold(reference: str, budget: int = DEFAULT_BUDGET) -> Gold:
         raise ValueError(f"malformed reference {reference!r}: too expensive to parse") from None
     except RecursionError:
         raise ValueError(f"malformed reference {reference!r}: nested too deeply") from None
-    sequence = isinstance(value, (Seq, Interval, IntervalUnion))
+    sequence = isinstance(value, (Seq, Interval, IntervalUnion, Matrix))
     return Gold(raw, value, numeric, sequence)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import random
+import re
 from fractions import Fraction
 from typing import Any
 
@@ -15,7 +16,8 @@ from verifiers.math_answer.extract import Extraction, _find_last_numbers, _last_
 from verifiers.math_answer.guards import DEFAULT_BUDGET, MAX_ANSWER_CHARS, Unparseable, _BudgetExceeded, _CallBudget, _sp
 from verifiers.math_answer.normalize import clean_answer, parse_answer_text
 from verifiers.math_answer.values import (
-    Gold, Relation, Scalar, Seq, Text, _fmt_frac, _free_symbols_of, _text_key, build_value, parse_gold,
+    Gold, Matrix, Relation, Scalar, Seq, Text, _fmt_frac, _free_symbols_of, _safe_str, _text_key, build_value,
+    parse_gold,
 )
 
 
@@ -30,12 +32,17 @@ def _rhs(v: Any) -> Any:
     return v
 
 
+_SPACED_NUMBERS_RE = re.compile(r"-?\d+(?: -?\d+)+")
+
+
 def _parse_prediction(part: str, gold: Gold) -> Any:
     cleaned = clean_answer(part, merge_thousands=not gold.sequence)
     if len(cleaned) > MAX_ANSWER_CHARS:
         raise Unparseable("answer too long")
     if isinstance(gold.value, Text):
         return Text(_text_key(part))
+    if gold.sequence and _SPACED_NUMBERS_RE.fullmatch(cleaned):
+        cleaned = cleaned.replace(" ", ", ")  # "100 200 300" for a list gold: three numbers, not thousands
     value = build_value(parse_answer_text(cleaned))
     if gold.numeric and isinstance(value, (Scalar, Relation)) and _free_symbols_of(_rhs(value)):
         try:  # read stray letters as units: "5 m", "x = 5 m" (never drops list items)
@@ -54,14 +61,19 @@ class MathVerifier(Verifier):
     description = "final math answer (\\boxed, 'the answer is', ####, <answer>, last number) vs gold, by sympy equivalence"
     timeout_s = 10.0
 
-    def __init__(self, rel_tol: float = 1e-6, allow_unevaluated: bool = False,
-                 symbolic_budget: int = DEFAULT_BUDGET, timeout_s: float | None = None):
+    def __init__(self, rel_tol: float = 1e-6, require_simplified: bool = False,
+                 symbolic_budget: int = DEFAULT_BUDGET, timeout_s: float | None = None,
+                 allow_unevaluated: bool | None = None):
         if not (isinstance(rel_tol, (int, float)) and 0 <= rel_tol < 1):
             raise ValueError(f"math verifier: rel_tol must be in [0, 1), got {rel_tol!r}")
         if not isinstance(symbolic_budget, int) or symbolic_budget < 1000:
             raise ValueError(f"math verifier: symbolic_budget must be an int >= 1000, got {symbolic_budget!r}")
+        if allow_unevaluated is not None:  # the old name of the same switch, inverted
+            if require_simplified and allow_unevaluated:
+                raise ValueError("math verifier: require_simplified=True contradicts allow_unevaluated=True")
+            require_simplified = not allow_unevaluated
         self.rel_tol = float(rel_tol)
-        self.allow_unevaluated = bool(allow_unevaluated)
+        self.require_simplified = bool(require_simplified)
         self.symbolic_budget = symbolic_budget
         if timeout_s is not None:
             self.timeout_s = float(timeout_s)
@@ -93,7 +105,7 @@ class MathVerifier(Verifier):
         details["extracted"] = _preview(" | ".join(ext.parts))
         if ext.retracted:
             return Verdict(0.0, "answer retracted", details)
-        cmp = _Cmp(self.rel_tol, self.allow_unevaluated)
+        cmp = _Cmp(self.rel_tol, self.require_simplified)
         try:
             with _CallBudget(self.symbolic_budget):
                 try:
@@ -140,7 +152,7 @@ class MathVerifier(Verifier):
 
     # -- audit support -------------------------------------------------------------
     def audit_problems(self, n: int, seed: int = 0) -> list[AuditProblem]:
-        return audit_problems(n, seed)
+        return audit_problems(n, seed, require_simplified=self.require_simplified)
 
     def adversarial_cases(self, problem: AuditProblem) -> list[tuple[str, str, float]]:
         ref = str(problem.reference)
@@ -161,13 +173,135 @@ class MathVerifier(Verifier):
             ("frac bomb", "\\boxed{" + "\\frac{1}{" * 400 + "2" + "}" * 400 + "}", 0.0),
             ("code injection", "\\boxed{__import__('os').system('echo pwned')}", 0.0),
         ]
-        if isinstance(gold.value, Scalar) and gold.numeric:
-            if gold.value.frac is not None and gold.value.frac != 0:
+        strict = 0.0 if self.require_simplified else 1.0
+        v = gold.value
+        if isinstance(v, Scalar) and gold.numeric:
+            if v.frac is not None and v.frac != 0:
                 cases.append(("plus-minus hedge", f"\\boxed{{\\pm {ref}}}", 0.0))
-            if gold.value.literal and not gold.value.percent:
-                cases.append(("unevaluated arithmetic", f"\\boxed{{({ref}) \\cdot 1}}", 0.0))
+            if v.literal and not v.percent:
+                # a closed form of the gold: accepted, unless the verifier requires simplified answers
+                cases.append(("unevaluated arithmetic", f"\\boxed{{({ref}) \\cdot 1}}", strict))
                 cases.append(("trailing units", f"The answer is {ref} apples.", 1.0))
+            # a retraction followed by the answer, and the other way round
+            cases.append(("retraction then answer", f"The answer is {d1}. No, it isn't {d1}; it's {ref}.", 1.0))
+            cases.append(("answer then retraction", f"The answer is {ref}. Hmm, it isn't {ref}; it's {d1}.", 0.0))
+            cases.append(("negated alternative", f"After checking, it's {ref}, not {d1}.", 1.0))
+            cases.append(("negated answer phrase", f"The answer isn't {ref}; it's {d1}.", 0.0))
+            if v.frac is not None and not v.percent:
+                cases.extend(_number_cases(v.frac, strict))
+        elif isinstance(v, Scalar):
+            cases.extend(_symbolic_cases(ref, v))
+        elif isinstance(v, Matrix):
+            cases.extend(_matrix_cases(v))
         return cases
+
+
+def _number_cases(value: Fraction, strict: float) -> list[tuple[str, str, float]]:
+    """Factorials, number words, spaced thousands and repeating decimals for a rational gold."""
+    cases = []
+    if value.denominator == 1:
+        n = value.numerator
+        if n >= 3:  # n! is not n: the trailing "!" is a factorial, in a box and after a digit in prose
+            cases.append(("factorial of the answer", f"\\boxed{{{n}!}}", 0.0))
+            cases.append(("factorial in prose", f"So the answer is {n}!", 0.0))
+        for m in range(3, 12):
+            if math.factorial(m) == n:
+                cases.append(("factorial form", f"\\boxed{{{m}!}}", strict))
+        if abs(n) < 10 ** 9:
+            cases.append(("number words", f"The answer is {number_words(n)}.", 1.0))
+            cases.append(("wrong number words", f"The answer is {number_words(n + 1 + abs(n) // 50)}.", 0.0))
+        if n >= 1000:
+            cases.append(("space thousands in prose", f"All told, the count comes to {n:,}.".replace(",", " "), 1.0))
+    elif _repeating(value) is not None:
+        cases.append(("repeating decimal", f"\\boxed{{{_repeating(value)}}}", 1.0))
+        cases.append(("truncated decimal", f"\\boxed{{{float(value):.2f}}}", 0.0))
+    return cases
+
+
+def _symbolic_cases(ref: str, v: Scalar) -> list[tuple[str, str, float]]:
+    """Identities that hold only for some signs of the variables must be refuted."""
+    sp = _sp()
+    expr = v.expr()
+    if expr.has(sp.Abs):
+        dropped = expr.replace(sp.Abs, lambda u: u)
+        return [("absolute value dropped", f"\\boxed{{{_safe_str(dropped).replace('**', '^')}}}", 0.0)]
+    if _changes_sign(expr):  # |g| and sqrt(g^2) differ from g where g < 0
+        return [("sign-blind identity", f"\\boxed{{\\sqrt{{({ref})^2}}}}", 0.0),
+                ("absolute value added", f"\\boxed{{\\left|{ref}\\right|}}", 0.0)]
+    return []
+
+
+def _changes_sign(expr) -> bool:
+    """A one-variable polynomial with a real root of odd multiplicity (it is negative somewhere)."""
+    sp = _sp()
+    if len(expr.free_symbols) != 1 or not expr.is_polynomial():
+        return False
+    x = next(iter(expr.free_symbols))
+    _, factors = sp.factor_list(expr, x)
+    return any(mult % 2 == 1 and sp.Poly(f, x).count_roots() > 0 for f, mult in factors)
+
+
+def _matrix_cases(v: Matrix) -> list[tuple[str, str, float]]:
+    rows = [[x.show() for x in row] for row in v.rows]
+    cases = []
+    changed = [list(r) for r in rows]
+    changed[0][0] = f"{changed[0][0]} + 1"
+    cases.append(("matrix entry changed", "\\boxed{" + _pmatrix(changed) + "}", 0.0))
+    r, c = v.shape
+    flat = [x for row in rows for x in row]
+    if r == 1 or c == 1:
+        cases.append(("vector as a tuple", f"\\boxed{{({', '.join(flat)})}}", 1.0))
+        cases.append(("vector transposed", "\\boxed{" + _pmatrix([list(t) for t in zip(*rows)]) + "}", 0.0))
+    else:
+        cases.append(("matrix flattened", f"\\boxed{{({', '.join(flat)})}}", 0.0))
+        if [list(t) for t in zip(*rows)] != rows:
+            cases.append(("matrix transposed", "\\boxed{" + _pmatrix([list(t) for t in zip(*rows)]) + "}", 0.0))
+    return cases
+
+
+def _pmatrix(rows: list[list[str]]) -> str:
+    return "\\begin{pmatrix} " + " \\\\ ".join(" & ".join(r) for r in rows) + " \\end{pmatrix}"
+
+
+_ONES = ("zero one two three four five six seven eight nine ten eleven twelve thirteen fourteen fifteen sixteen "
+         "seventeen eighteen nineteen").split()
+_TENS_WORDS = "_ _ twenty thirty forty fifty sixty seventy eighty ninety".split()
+
+
+def number_words(n: int, and_: bool = False) -> str:
+    """English words for an integer (|n| < 10**9): 42 -> "forty-two", 105 -> "one hundred five"."""
+    if n < 0:
+        return "minus " + number_words(-n, and_)
+    if n < 20:
+        return _ONES[n]
+    if n < 100:
+        return _TENS_WORDS[n // 10] + ("-" + _ONES[n % 10] if n % 10 else "")
+    if n < 1000:
+        rest = n % 100
+        return _ONES[n // 100] + " hundred" + ((" and " if and_ else " ") + number_words(rest) if rest else "")
+    for scale, word in ((10 ** 6, "million"), (1000, "thousand")):
+        if n >= scale:
+            rest = n % scale
+            return number_words(n // scale) + f" {word}" + (" " + number_words(rest, and_) if rest else "")
+    raise ValueError(n)
+
+
+def _repeating(value: Fraction) -> str | None:
+    """0.1\\overline{6} for 1/6; None when the decimal terminates or the period is long."""
+    if value < 0:
+        inner = _repeating(-value)
+        return None if inner is None else "-" + inner
+    whole, rem, q = value.numerator // value.denominator, value.numerator % value.denominator, value.denominator
+    digits, seen = [], {}
+    while rem and rem not in seen and len(digits) < 12:
+        seen[rem] = len(digits)
+        rem *= 10
+        digits.append(str(rem // q))
+        rem %= q
+    if not rem or rem not in seen:
+        return None
+    k = seen[rem]
+    return f"{whole}." + "".join(digits[:k]) + "\\overline{" + "".join(digits[k:]) + "}"
 
 
 def _preview(s: str, n: int = 200) -> str:
@@ -196,6 +330,8 @@ _STYLES = ("boxed", "phrase", "hashes", "tag", "final", "think_boxed")
 
 def _wrap_gold(rng: random.Random, reasoning: str, answer: str, style: str | None = None) -> str:
     style = style or rng.choice(_STYLES)
+    if style == "raw":  # the generator wrote the whole completion
+        return answer
     if style == "boxed":
         return f"{reasoning} Therefore the result is $\\boxed{{{answer}}}$."
     if style == "phrase":
@@ -328,21 +464,155 @@ def _gen_choice(rng):
             "Check each option in turn.", f"({correct})")
 
 
+def _gen_factorial(rng, strict=False):
+    k = rng.randint(4, 9)
+    v = math.factorial(k)
+    forms = [str(v)] if strict else [f"{k}!", str(v), f"{k}! = {v}", f"{k}!"]
+    style = None if strict else rng.choice([None, "phrase"])  # "The answer is 5!.": after a digit, a factorial
+    return (f"In how many different orders can {k} different books stand on a shelf?", str(v),
+            f"Any of the {k} books can go first, and so on.", rng.choice(forms), style)
+
+
+def _gen_abs(rng, strict=False):
+    a = rng.randint(1, 9)
+    return (f"Simplify the square root of the square of (x minus {a}), for real x.", f"|x - {a}|",
+            "A square root is never negative.",
+            rng.choice([f"|x-{a}|", f"\\sqrt{{(x-{a})^2}}", f"|{a} - x|", f"\\left| x - {a} \\right|"]))
+
+
+def _gen_identity(rng, strict=False):
+    k = rng.randint(2, 40)
+    pair = rng.choice([("cosh", "sinh", "minus", "-", "u"), ("sin", "cos", "plus", "+", "t")])
+    f, g, word, op, var = pair
+    forms = [str(k + 1)] if strict else [str(k + 1), f"\\{f}^2 {var} {op} \\{g}^2 {var} + {k}"]
+    return (f"What is {f} squared of {var} {word} {g} squared of {var}, plus {k}, for every real {var}?", str(k + 1),
+            "Use the Pythagorean identity.", rng.choice(forms))
+
+
+def _gen_negative_denominator(rng, strict=False):
+    b = rng.choice([3, 4, 5, 7, 8, 9, 11])
+    a = rng.choice([x for x in range(1, 3 * b) if math.gcd(x, b) == 1 and x % b])
+    return (f"Divide {a} by the negative of {b}; give the result as a fraction.", f"-{a}/{b}",
+            f"A positive divided by a negative is negative.",
+            rng.choice([f"\\frac{{{a}}}{{-{b}}}", f"-\\frac{{{a}}}{{{b}}}", f"\\frac{{-{a}}}{{{b}}}", f"{a}/(-{b})"]))
+
+
+def _gen_closed_form(rng, strict=False):
+    kind = rng.choice(["binom", "log", "root", "sum"])
+    if kind == "binom":
+        n = rng.randint(6, 12)
+        k = rng.randint(2, n - 2)
+        v = math.comb(n, k)
+        prompt, forms = f"How many ways are there to choose {k} of {n} people?", [f"\\binom{{{n}}}{{{k}}}", f"{{{n} \\choose {k}}}"]
+    elif kind == "log":
+        b, e = rng.randint(2, 5), rng.randint(2, 6)
+        v = e
+        prompt, forms = f"To what power must {b} be raised to give {b ** e}?", [f"\\log_{{{b}}} {b ** e}", f"\\log_{b}{{{b ** e}}}"]
+    elif kind == "root":
+        b, e = rng.randint(2, 7), rng.randint(3, 5)
+        v = b
+        prompt, forms = f"Which positive number has {b ** e} as its power of order {e}?", [f"\\sqrt[{e}]{{{b ** e}}}"]
+    else:
+        p, q = rng.randint(10, 60), rng.randint(10, 60)
+        v = p + q
+        prompt, forms = f"Find y when y minus {p} equals {q}.", [f"y = {p} + {q}", f"{q} + {p}"]
+    return prompt, str(v), "Evaluate it.", str(v) if strict else rng.choice(forms + [str(v)])
+
+
+def _gen_number_words(rng, strict=False):
+    w, d = rng.randint(2, 300), rng.randint(1, 6)
+    v = 7 * w + d
+    return (f"How many days are there in {w} weeks and {d} days?", str(v), f"Each week has 7 days.",
+            number_words(v, and_=rng.random() < 0.5))
+
+
+def _gen_repeating(rng, strict=False):
+    q = rng.choice([3, 6, 7, 9, 11, 12, 13, 15, 22, 27, 33, 37])
+    p = rng.choice([x for x in range(1, 3 * q) if math.gcd(x, q) == 1 and x % q])
+    rep = _repeating(Fraction(p, q))
+    forms = [rep]
+    if "\\overline{" in rep and len(rep.split("\\overline{")[1]) == 2:  # one digit repeats: also 0.\dot{3}, 0.(3)
+        head, digit = rep.split("\\overline{")[0], rep.split("\\overline{")[1][0]
+        forms += [f"{head}\\dot{{{digit}}}", f"{head}({digit})", f"{head}{digit * 4}\\ldots"]
+    return (f"A recipe uses {p} cups of flour for {q} cakes. How many cups go into one cake, as a decimal?",
+            f"\\frac{{{p}}}{{{q}}}", f"Divide {p} by {q}; the digits repeat.", rng.choice(forms))
+
+
+def _gen_spaced_thousands(rng, strict=False):
+    a, b = rng.randint(120, 990), rng.randint(30, 99)
+    v = a * b
+    spaced = f"{v:,}".replace(",", rng.choice([" ", "\u00a0", "\u202f"]))
+    gold = (f"A printer prints {a} pages an hour for {b} hours; we multiply {a} by {b}. "
+            f"So the printer makes {spaced} pages in total.")
+    return (f"A printer prints {a} pages an hour. How many pages does it print in {b} hours?", str(v),
+            "", gold, "raw")
+
+
+def _gen_retraction(rng, strict=False):
+    a, b = rng.randint(3, 40), rng.randint(3, 40)
+    wrong = a * b + rng.choice([-1, 1]) * rng.randint(1, 5)
+    gold = (f"<think>{a} times {b}...</think>\nThe answer is {wrong}. No, it isn't {wrong}; "
+            f"it's {a * b}." if rng.random() < 0.5 else
+            f"I first got {wrong}. The answer isn't {wrong}; it's {a * b}.")
+    return (f"A hall has {a} rows of {b} seats. How many seats are there?", str(a * b), "", gold, "raw")
+
+
+def _gen_plain_expression(rng, strict=False):
+    k = rng.randint(2, 9)
+    var = rng.choice("abyt")
+    if rng.random() < 0.5:
+        ref, prompt = f"({var}-{k})^2", f"Factor the square of {var}, minus {2 * k} times {var}, plus {k * k}."
+        ans = rng.choice([f"({var}-{k})^2", f"({var} - {k})^2", f"({var}-{k})({var}-{k})"])
+    else:
+        ref, prompt = f"({var}-{k})({var}+{k})", f"Factor the square of {var} minus {k * k}."
+        ans = rng.choice([f"({var}-{k})({var}+{k})", f"({var} + {k})({var} - {k})"])
+    gold = f"We look for two factors. So the expression factors as {ans}."
+    return prompt, ref, "", gold, "raw"
+
+
+def _gen_matrix(rng, strict=False):
+    a, b, c, d = (rng.randint(-9, 9) for _ in range(4))
+    ref = f"\\begin{{pmatrix}} {2 * a} & {2 * b} \\\\ {2 * c} & {2 * d} \\end{{pmatrix}}"
+    ans = rng.choice([ref.replace("pmatrix", "bmatrix"), ref,
+                      f"\\left[\\begin{{array}}{{cc}} {2 * a} & {2 * b} \\\\ {2 * c} & {2 * d} \\end{{array}}\\right]"])
+    return (f"A 2 by 2 matrix has first row {a} and {b}, and second row {c} and {d}. Double every entry.", ref,
+            "Multiply each entry by 2.", ans, rng.choice(["boxed", "think_boxed"]))
+
+
+def _gen_vector(rng, strict=False):
+    x, y, z = (rng.randint(-9, 9) for _ in range(3))
+    ref = f"\\begin{{pmatrix}} {3 * x} \\\\ {3 * y} \\\\ {3 * z} \\end{{pmatrix}}"
+    ans = rng.choice([ref, f"({3 * x}, {3 * y}, {3 * z})", f"\\langle {3 * x}, {3 * y}, {3 * z} \\rangle",
+                      f"\\mathbf{{v}} = {ref}"])
+    return (f"A vector has coordinates {x}, {y} and {z}. What is three times the vector?", ref,
+            "Scale each coordinate.", ans, rng.choice(["boxed", "think_boxed"]))
+
+
 _GENERATORS = (_gen_integer, _gen_negative, _gen_fraction, _gen_decimal, _gen_thousands, _gen_percent,
                _gen_sqrt, _gen_pi, _gen_set, _gen_interval, _gen_tuple, _gen_symbolic, _gen_equation,
-               _gen_scientific, _gen_choice)
+               _gen_scientific, _gen_choice, _gen_factorial, _gen_abs, _gen_identity, _gen_negative_denominator,
+               _gen_closed_form, _gen_number_words, _gen_repeating, _gen_spaced_thousands, _gen_retraction,
+               _gen_plain_expression, _gen_matrix, _gen_vector)
+_STRICT_AWARE = {_gen_factorial, _gen_abs, _gen_identity, _gen_negative_denominator, _gen_closed_form,
+                 _gen_number_words, _gen_repeating, _gen_spaced_thousands, _gen_retraction, _gen_plain_expression,
+                 _gen_matrix, _gen_vector}
 
 
-def audit_problems(n: int, seed: int = 0) -> list[AuditProblem]:
-    """n seeded problems cycling through 15 answer kinds, each with a gold completion."""
+def audit_problems(n: int, seed: int = 0, require_simplified: bool = False) -> list[AuditProblem]:
+    """n seeded problems cycling through 27 answer kinds, each with a gold completion.
+
+    With `require_simplified`, gold completions state simplified answers only (no 4!, \\binom{6}{3}).
+    """
     rng = random.Random(seed)
-    checker = MathVerifier()
+    checker = MathVerifier(require_simplified=require_simplified)
     out: list[AuditProblem] = []
     seen: set = set()
     for k in range(n):
         gen = _GENERATORS[k % len(_GENERATORS)]
         for _attempt in range(50):
-            prompt, ref, reasoning, ans = gen(rng)
+            drawn = gen(rng, require_simplified) if gen in _STRICT_AWARE else gen(rng)
+            prompt, ref, reasoning, ans = drawn[:4]
+            style = drawn[4] if len(drawn) > 4 else None
             keys = _answer_keys(parse_gold(ref))
             # answers must differ across problems (the audit uses other problems' golds as wrong
             # answers) and the prompt alone must not state the answer
@@ -350,7 +620,7 @@ def audit_problems(n: int, seed: int = 0) -> list[AuditProblem]:
                 continue
             break
         seen |= keys
-        out.append(AuditProblem(prompt=prompt, reference=ref, gold=_wrap_gold(rng, reasoning, ans)))
+        out.append(AuditProblem(prompt=prompt, reference=ref, gold=_wrap_gold(rng, reasoning, ans, style)))
     return out
 
 
