@@ -268,7 +268,10 @@ def _programs(token: str, victim_dir: str, victim_file: str) -> dict[str, tuple[
         "abort at import": ("import os\nos.abort()\n", ("crashed (SIGABRT)",)),
         "timeout": ("def f(x):\n    while True:\n        pass\n", ("timeout",)),
         "hostile files": (hostile, ("passed",)),
-        "daemons and forks": (daemons, ("passed",)),
+        # Its children race the process limit: a child whose fork fails reports through the harness's channel,
+        # which the harness rejects ("protocol violation", scored 0). Either verdict is safe; the host check is
+        # what this program is for (measured: 1 of 16 checks failed that way with both cores busy).
+        "daemons and forks": (daemons, ("passed", "failed 1/1 tests")),
         "fork bomb": ("import os\nwhile True:\n    try:\n        os.fork()\n    except OSError:\n        pass\n", ("timeout",)),
         "memory bomb": ("hog = []\nwhile True:\n    hog.append(bytearray(1 << 24))\n", ("killed (memory)",)),
     }
