@@ -628,7 +628,7 @@ def _dpo_setup(args) -> SimpleNamespace:
 
             def loss_fn(mb):
                 s, _ = pair_logps(model, mb)  # (2B,): chosen, then rejected
-                return dpo_loss(s[:B], s[B:], r["chosen"], r["rejected"], beta=beta)
+                return dpo_loss(s[:B], s[B:], r["chosen"], r["rejected"], beta=beta, loss_type="sigmoid")
 
             loop.optimizer_step(accelerator, model, optimizer, scheduler, [batch], loss_fn, 1.0, step + 1)
         _sync(args.device)
