@@ -56,7 +56,7 @@ import torch
 from posttrain import loop
 from posttrain.chat import encode_prompts
 from posttrain.logprobs import masked_sum, packed_logprobs, sequence_logprobs
-from posttrain.data import DataError
+from posttrain.data import DataError, collate_completions
 
 PAIR_FIELDS = ("prompt", "chosen", "rejected")
 
@@ -397,17 +397,8 @@ def collate_pairs(pairs: Sequence[TokenizedPair], pad_id: int, share_prompt: boo
     """
     if share_prompt:
         return collate_shared_prompt(pairs, pad_id)
-    seqs = [(p.prompt, p.chosen) for p in pairs] + [(p.prompt, p.rejected) for p in pairs]
-    T = max(len(a) + len(b) for a, b in seqs)
-    input_ids = torch.full((len(seqs), T), pad_id, dtype=torch.long)  # (2B, T)
-    attention_mask = torch.zeros((len(seqs), T), dtype=torch.long)  # (2B, T)
-    completion_mask = torch.zeros((len(seqs), T), dtype=torch.bool)  # (2B, T)
-    for i, (a, b) in enumerate(seqs):
-        n = len(a) + len(b)
-        input_ids[i, :n] = torch.tensor(a + b)
-        attention_mask[i, :n] = 1
-        completion_mask[i, len(a):n] = True
-    return {"input_ids": input_ids, "attention_mask": attention_mask, "completion_mask": completion_mask}
+    # two right-padded rows per pair, (2B, T): prompt + chosen, then prompt + rejected
+    return collate_completions([(p.prompt, p.chosen) for p in pairs] + [(p.prompt, p.rejected) for p in pairs], pad_id)
 
 
 

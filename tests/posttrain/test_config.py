@@ -28,40 +28,31 @@ def test_model_sugar_and_scientific_float(tmp_path):
     assert res.stage_cfg.lr == pytest.approx(1e-3)
 
 
-def test_unknown_key_names_key_and_valid_ones(tmp_path):
+def _sft(tmp_path, recipe_text: str, *overrides: str):
+    """Resolve the sft stage of a recipe file holding `recipe_text`, with `overrides`."""
     recipe = tmp_path / "r.yaml"
-    recipe.write_text("sft:\n  learning_rate: 0.1\n")
-    with pytest.raises(ConfigError, match=r"unknown config key 'sft.learning_rate'; valid keys in sft: lr, "):
-        resolve(str(recipe), "sft", SFTConfig, [])
-    recipe.write_text("sft: {}\n")
-    with pytest.raises(ConfigError, match=r"unknown config key 'bogus' for stage 'sft'; valid keys: .*lr"):
-        resolve(str(recipe), "sft", SFTConfig, ["bogus=1"])
-    with pytest.raises(ConfigError, match=r"unknown config key 'model.colour'"):
-        resolve(str(recipe), "sft", SFTConfig, ["model.colour=red"])
+    recipe.write_text(recipe_text)
+    return resolve(str(recipe), "sft", SFTConfig, list(overrides))
 
 
-def test_unknown_section_and_bad_yaml(tmp_path):
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text("sfx:\n  lr: 1\n")
-    with pytest.raises(ConfigError, match="unknown recipe section 'sfx'"):
-        resolve(str(recipe), "sft", SFTConfig, [])
-    recipe.write_text("sft: [1, 2\n")
-    with pytest.raises(ConfigError, match="not valid YAML"):
-        resolve(str(recipe), "sft", SFTConfig, [])
-
-
-def test_wrong_types(tmp_path):
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text("sft:\n  max_steps: ten\n")
-    with pytest.raises(ConfigError, match=r"config key 'sft.max_steps': expected int, got 'ten'"):
-        resolve(str(recipe), "sft", SFTConfig, [])
-    recipe.write_text("sft: {}\n")
-    with pytest.raises(ConfigError, match=r"'sft.schedule': 'wavy' is not one of 'cosine', 'linear', 'constant'"):
-        resolve(str(recipe), "sft", SFTConfig, ["schedule=wavy"])
-    with pytest.raises(ConfigError, match=r"expected bool"):
-        resolve(str(recipe), "sft", SFTConfig, ["resume=maybe"])
-    with pytest.raises(ConfigError, match="key=value"):
-        resolve(str(recipe), "sft", SFTConfig, ["resume"])
+@pytest.mark.parametrize("recipe_text, overrides, message", [
+    pytest.param("sft:\n  learning_rate: 0.1\n", [], r"unknown config key 'sft.learning_rate'; valid keys in sft: lr, ",
+                 id="unknown-key-in-recipe"),
+    pytest.param("sft: {}\n", ["bogus=1"], r"unknown config key 'bogus' for stage 'sft'; valid keys: .*lr",
+                 id="unknown-override"),
+    pytest.param("sft: {}\n", ["model.colour=red"], r"unknown config key 'model.colour'", id="unknown-shared-key"),
+    pytest.param("sfx:\n  lr: 1\n", [], "unknown recipe section 'sfx'", id="unknown-section"),
+    pytest.param("sft: [1, 2\n", [], "not valid YAML", id="bad-yaml"),
+    pytest.param("sft:\n  max_steps: ten\n", [], r"config key 'sft.max_steps': expected int, got 'ten'", id="int"),
+    pytest.param("sft: {}\n", ["schedule=wavy"], r"'sft.schedule': 'wavy' is not one of 'cosine', 'linear', 'constant'",
+                 id="literal"),
+    pytest.param("sft: {}\n", ["resume=maybe"], r"expected bool", id="bool"),
+    pytest.param("sft: {}\n", ["resume"], "key=value", id="override-without-value"),
+])
+def test_bad_config_names_the_key(tmp_path, recipe_text, overrides, message):
+    """Unknown keys and sections, bad YAML and wrong types: one ConfigError naming the key (and the valid ones)."""
+    with pytest.raises(ConfigError, match=message):
+        _sft(tmp_path, recipe_text, *overrides)
 
 
 def test_unknown_recipe_lists_shipped():

@@ -17,6 +17,7 @@ import uuid
 import pytest
 
 from verifiers import code_sandbox as cs
+from verifiers.code_sandbox import sandbox as sandbox_module
 from verifiers.base import AuditProblem
 from verifiers.code_sandbox import CodeVerifier, extract_code, measure_overhead, sandbox_mode
 
@@ -47,25 +48,9 @@ def _like(verifier: CodeVerifier, **options) -> CodeVerifier:
 
 
 def _sandbox_processes() -> list[str]:
-    """Live processes under one of this process's per-run sandbox uids (zombies excluded).
-
-    Other processes on the machine may run sandboxes of their own at the same time; their
-    uids come from other ranges (the range is picked by the pid).
-    """
-    first = cs._UID_BASE + (os.getpid() % (1 << 22)) * cs._UID_SLOTS
-    found = []
-    for entry in os.scandir("/proc"):
-        if not entry.name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry.name}/status") as f:
-                status = dict(line.split(":", 1) for line in f if ":" in line)
-        except OSError:
-            continue
-        uid = int(status["Uid"].split()[1])
-        if first <= uid < first + cs._UID_SLOTS and status["State"].split()[0] not in ("Z", "X"):
-            found.append(f"{entry.name} uid={uid} {status['Name'].strip()}")
-    return found
+    """Live processes under one of this process's per-run sandbox uids (zombies excluded). Other processes on the
+    machine may run sandboxes of their own at the same time; their uids come from other ranges."""
+    return sandbox_module.uid_processes()
 
 
 def _sandbox_dirs() -> list[str]:

@@ -28,6 +28,7 @@ import pytest
 
 from verifiers import code_sandbox as cs
 from verifiers.code_sandbox import CodeVerifier, sandbox_mode
+from verifiers.code_sandbox import sandbox as sandbox_module
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 LIMITS = dict(time_limit_s=1.5, memory_mb=160, max_processes=12, max_file_mb=2, tmpfs_mb=8)
@@ -103,23 +104,11 @@ def _stat(path: str) -> tuple[int, int, int, int]:
 
 
 def _our_uids() -> range:
-    first = cs._UID_BASE + (os.getpid() % (1 << 22)) * cs._UID_SLOTS
-    return range(first, first + cs._UID_SLOTS)
+    return sandbox_module.run_uids()
 
 
 def _uid_processes() -> list[str]:
-    uids, found = _our_uids(), []
-    for entry in os.scandir("/proc"):
-        if not entry.name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry.name}/status") as f:
-                status = dict(line.split(":", 1) for line in f if ":" in line)
-        except OSError:
-            continue
-        if int(status["Uid"].split()[1]) in uids and status["State"].split()[0] not in ("Z", "X"):
-            found.append(f"{entry.name} {status['Name'].strip()}")
-    return found
+    return sandbox_module.uid_processes()
 
 
 def _uid_files(extra=(), skip=None) -> list[str]:

@@ -283,6 +283,32 @@ def sandbox_mode(python: str | None = None) -> SandboxMode:
 # --------------------------------------------------------------------------------------
 # Cleanup helpers
 # --------------------------------------------------------------------------------------
+def run_uids() -> range:
+    """The per-run uids this process's sandboxes use (a range picked by the pid, so that concurrent processes
+    running sandboxes never share a uid)."""
+    first = _UID_BASE + (os.getpid() % (1 << 22)) * _UID_SLOTS
+    return range(first, first + _UID_SLOTS)
+
+
+def uid_processes(uids: range | None = None) -> list[str]:
+    """Live (non-zombie) processes running as one of `uids` (default: `run_uids()`), as "pid uid=U name":
+    after a check returns there must be none (the tests and diagnostics ask this)."""
+    uids = run_uids() if uids is None else uids
+    found = []
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry.name}/status") as f:
+                status = dict(line.split(":", 1) for line in f if ":" in line)
+        except OSError:
+            continue
+        uid = int(status["Uid"].split()[1])
+        if uid in uids and status["State"].split()[0] not in ("Z", "X"):
+            found.append(f"{entry.name} uid={uid} {status['Name'].strip()}")
+    return found
+
+
 def _uid_has_processes(uid: int) -> bool:
     """Whether a live (non-zombie) process runs as `uid`.
 

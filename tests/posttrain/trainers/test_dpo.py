@@ -18,17 +18,12 @@ def _pairs(n: int, seed: int, split: str = "train") -> list[dict]:
             for r in rows]
 
 
-def _write(path: Path, rows: list[dict]) -> Path:
-    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
-    return path
-
-
 @pytest.fixture(scope="module")
-def world(tmp_path_factory, tiny_lm):
+def world(tmp_path_factory, tiny_lm, write_jsonl):
     """A random tiny 'SFT' model (tokenizer trained on the task) and train / held-out preference files."""
     root = tmp_path_factory.mktemp("dpo")
-    return {"sft": tiny_lm("tiny-summarize", max_length=256), "train": _write(root / "train.jsonl", _pairs(160, 0)),
-            "eval": _write(root / "eval.jsonl", _pairs(32, 0, "eval"))}
+    return {"sft": tiny_lm("tiny-summarize", max_length=256), "train": write_jsonl(root / "train.jsonl", _pairs(160, 0)),
+            "eval": write_jsonl(root / "eval.jsonl", _pairs(32, 0, "eval"))}
 
 
 def _args(world, out: Path, *extra: str, train: Path | None = None) -> list[str]:
@@ -115,18 +110,18 @@ def test_dpo_learns_and_saves_a_loadable_model(world, tmp_path, capsys):
         assert "matplotlib is not installed" in text
 
 
-def test_bad_rows_stop_with_file_and_row_or_are_skipped_with_a_count(world, tmp_path, capsys):
+def test_bad_rows_stop_with_file_and_row_or_are_skipped_with_a_count(world, tmp_path, capsys, write_jsonl):
     rows = _pairs(24, 3)
     rows[2]["rejected"] = rows[2]["chosen"]
     rows[5]["chosen"] = " "
     rows[9]["rejected"] = " word" * 400
-    bad = _write(tmp_path / "bad.jsonl", rows)
+    bad = write_jsonl(tmp_path / "bad.jsonl", rows)
     assert main(_args(world, tmp_path / "a", train=bad)) == 2
     assert f"{bad}: row 3: field 'rejected': identical to 'chosen'" in capsys.readouterr().err
     assert not (tmp_path / "a" / "tiny-summarize" / "dpo").exists()  # stopped before touching the run dir
     rows[2]["rejected"] += " Different now."
     rows[5]["chosen"] = " Fine."
-    assert main(_args(world, tmp_path / "b", train=_write(tmp_path / "long.jsonl", rows))) == 2
+    assert main(_args(world, tmp_path / "b", train=write_jsonl(tmp_path / "long.jsonl", rows))) == 2
     assert "long.jsonl: row 10: prompt + completion is" in capsys.readouterr().err
     assert main(_args(world, tmp_path / "c", "on_bad_rows=skip", "max_steps=1", "final_eval_rows=0", train=bad)) == 0
     assert (f"skipped 3 bad rows of {bad}: 1 identical pair (row 3); 1 empty (row 6); 1 too long (row 10)"

@@ -18,16 +18,11 @@ def _pairs(n: int, seed: int, split: str) -> list[dict]:
              "rejected": " " + r["meta"]["concise_summary"] + fillers[i % 3]} for i, r in enumerate(rows)]
 
 
-def _write(path: Path, rows: list[dict]) -> Path:
-    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
-    return path
-
-
 @pytest.fixture(scope="module")
-def world(tmp_path_factory, tiny_lm):
+def world(tmp_path_factory, tiny_lm, write_jsonl):
     root = tmp_path_factory.mktemp("rm")
-    return {"root": root, "sft": tiny_lm("tiny-summarize", max_length=256), "train": _write(root / "train.jsonl", _pairs(192, 0, "train")),
-            "eval": _write(root / "eval.jsonl", _pairs(48, 0, "eval"))}
+    return {"root": root, "sft": tiny_lm("tiny-summarize", max_length=256), "train": write_jsonl(root / "train.jsonl", _pairs(192, 0, "train")),
+            "eval": write_jsonl(root / "eval.jsonl", _pairs(48, 0, "eval"))}
 
 
 def _args(world, out: Path, *extra: str, train: Path | None = None) -> list[str]:
@@ -69,10 +64,10 @@ def test_reward_model_learns_and_reloads_as_a_hf_directory(world, tmp_path):
     assert sum(wins) >= 6
 
 
-def test_reward_model_bad_rows(world, tmp_path, capsys):
+def test_reward_model_bad_rows(world, tmp_path, capsys, write_jsonl):
     rows = _pairs(40, 1, "train")
     rows[7]["chosen"] = rows[7]["rejected"]
-    bad = _write(tmp_path / "bad.jsonl", rows)
+    bad = write_jsonl(tmp_path / "bad.jsonl", rows)
     assert main(_args(world, tmp_path / "a", "max_steps=1", train=bad)) == 2
     assert f"{bad}: row 8: field 'rejected': identical to 'chosen'" in capsys.readouterr().err
     assert main(_args(world, tmp_path / "b", "max_steps=1", "on_bad_rows=skip", train=bad)) == 0
