@@ -2,7 +2,6 @@
 here. Prompts go through its template (one BOS), SFT targets end with <|im_end|> and generation stops there, SFT /
 DPO / GRPO run on it; chat_template=on without a template, bf16 on CPU; gradient checkpointing gives the same losses."""
 import json
-import shutil
 from pathlib import Path
 
 import pytest
