@@ -6,6 +6,8 @@
     posttrain <stage> --help                            the stage's config fields with their docs
     posttrain verifiers                                 installed verifiers
     posttrain verify audit NAME | score NAME FILE.jsonl verifier audit / scoring
+    posttrain models import FILE.gguf DIR | fetch NAME DIR | list
+                                                        real models offline (posttrain.model_files)
 
 Stages chain through the run directory `runs/<recipe>/<stage>/`: a stage that needs an
 earlier stage's output (SFT needs a base model; eval needs the SFT model) uses it when it
@@ -62,15 +64,21 @@ STAGES: dict[str, Stage] = {
 # ----------------------------------------------------------------------------- chaining
 def ensure_base(res: Resolved) -> Path:
     """The base model directory: a local HF dir as given, or a preset built from scratch once per recipe."""
-    from posttrain import loop, tasks
+    from posttrain import loop, model_files, tasks
     from posttrain.models import PRESETS, ModelError, bootstrap, count_parameters, is_model_dir
 
     spec = res.model.path
+    if model_files.is_gguf(spec):  # dequantized once into <output_dir>/models/<name>/
+        cache = Path(res.run.output_dir) / "models"
+        if not _other_process_waits(lambda: model_files.imported_from(spec, cache / Path(spec).stem),
+                                    f"import {spec}"):
+            model_files.cached_import(spec, cache)
+        return cache / Path(spec).stem
     if spec not in PRESETS:
         if not is_model_dir(spec):
             what = "does not exist" if not Path(spec).exists() else "has no config.json (not a Hugging Face model directory)"
-            raise ModelError(f"model.path {spec!r} {what}; give a local Hugging Face model directory or a preset "
-                             f"name ({', '.join(PRESETS)})")
+            raise ModelError(f"model.path {spec!r} {what}; give a local Hugging Face model directory, a .gguf file "
+                             f"or a preset name ({', '.join(PRESETS)})")
         return Path(spec)
     base = res.stage_dir("base")
     want = {"preset": spec, "vocab_size": res.model.vocab_size, "seed": res.model.seed, "task": res.task.name,
@@ -83,17 +91,7 @@ def ensure_base(res: Resolved) -> Path:
     def built() -> bool:
         return is_model_dir(base) and stamp.is_file() and json.loads(stamp.read_text()) == want
 
-    if built():
-        return base
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and int(os.environ.get("RANK", "0")) != 0:
-        # Launched as several processes (accelerate / torchrun): process 0 builds, the others wait for it.
-        import time
-
-        deadline = time.time() + 3600
-        while not built():
-            if time.time() > deadline:
-                raise ModelError(f"waited an hour for process 0 to build {base}; did it fail?")
-            time.sleep(0.5)
+    if built() or _other_process_waits(built, f"build {base}"):
         return base
     if is_model_dir(base) and stamp.is_file():
         print(f"[base] {base} was built with other settings; rebuilding")
@@ -104,6 +102,23 @@ def ensure_base(res: Resolved) -> Path:
     loop.write_json(stamp, want)
     print(f"[base] {count_parameters(model) / 1e6:.2f}M parameters, vocabulary {len(tok)}")
     return base
+
+
+def _other_process_waits(done: Callable[[], bool], what: str) -> bool:
+    """Launched as several processes (accelerate / torchrun), process 0 does `what` and the others wait
+    until `done()`: True in those others once it is done, False in process 0 and in a single process."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or int(os.environ.get("RANK", "0")) == 0:
+        return False
+    import time
+
+    from posttrain.models import ModelError
+
+    deadline = time.time() + 3600
+    while not done():
+        if time.time() > deadline:
+            raise ModelError(f"waited an hour for process 0 to {what}; did it fail?")
+        time.sleep(0.5)
+    return True
 
 
 def ensure_stage(res: Resolved, stage: str) -> Path:
@@ -160,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     top = argparse.ArgumentParser(prog="posttrain", description="LLM post-training on a laptop CPU and beyond.",
                                   epilog="stages: " + ", ".join(f"{k} ({v.help})" for k, v in STAGES.items()))
-    top.add_argument("command", help="recipes | verifiers | verify | " + " | ".join(STAGES))
+    top.add_argument("command", help="recipes | verifiers | verify | models | " + " | ".join(STAGES))
     if not argv or argv[0] in ("-h", "--help"):
         top.print_help()
         return 0
@@ -174,8 +189,13 @@ def main(argv: list[str] | None = None) -> int:
             from verifiers.cli import main as vmain
 
             return vmain(["list"] + rest if cmd == "verifiers" else rest)
+        if cmd == "models":
+            from posttrain import model_files
+
+            return model_files.main(rest)
         if cmd not in STAGES:
-            raise ConfigError(f"unknown command {cmd!r}; choose one of: recipes, verifiers, verify, {', '.join(STAGES)}")
+            raise ConfigError(f"unknown command {cmd!r}; choose one of: recipes, verifiers, verify, models, "
+                              f"{', '.join(STAGES)}")
         cfg_cls, run = STAGES[cmd].load()
         if "-h" in rest or "--help" in rest:
             _print_help(cmd, cfg_cls)

@@ -10,14 +10,60 @@
 - `tiny_rm(task, ...)`: a "reward model" made from that tiny model (its transformer under a one-output head with
   visible outputs, seeded), saved with the tokenizer; built once per session and settings.
 - `write_jsonl(path, rows)`: rows as a JSONL file; returns the path.
+- `learning` (tests marked `learning`): the seed and thread count of a run whose result is a learned number,
+  and `learning.above(name, value, bound)` / `learning.below(...)` to assert it. The defaults (seed 0, one
+  thread) are what CI runs; POSTTRAIN_TEST_SEED / POSTTRAIN_TEST_THREADS change them, and with
+  POSTTRAIN_MARGINS=FILE every check is appended to FILE, so `scripts/test_margins.py` can measure each
+  bound's margin over several seeds and both thread counts (RESULTS.md, "Test margins"). A bound must hold
+  with room at every seed and thread count measured there, not only at the one CI happens to run.
 """
 from __future__ import annotations
 
 import json
+import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 import torch
+
+
+TEST_SEED = int(os.environ.get("POSTTRAIN_TEST_SEED", "0"))
+TEST_THREADS = int(os.environ.get("POSTTRAIN_TEST_THREADS", "1"))
+
+
+@dataclass
+class Learning:
+    test: str
+    seed: int = TEST_SEED
+    threads: int = TEST_THREADS
+    checks: list = field(default_factory=list)
+
+    @property
+    def overrides(self) -> list[str]:
+        """Stage seed, model-init seed and thread count of the run (after a test's own pinned options)."""
+        return [f"seed={self.seed}", f"model.seed={self.seed}", f"run.threads={self.threads}"]
+
+    def above(self, name: str, value: float, bound: float, context=None) -> None:
+        self._check(name, float(value), ">", float(bound), float(value) - float(bound), context)
+
+    def below(self, name: str, value: float, bound: float, context=None) -> None:
+        self._check(name, float(value), "<", float(bound), float(bound) - float(value), context)
+
+    def _check(self, name, value, op, bound, margin, context):
+        row = {"test": self.test, "check": name, "value": value, "op": op, "bound": bound, "margin": margin,
+               "seed": self.seed, "threads": self.threads}
+        if os.environ.get("POSTTRAIN_MARGINS"):
+            with open(os.environ["POSTTRAIN_MARGINS"], "a") as f:
+                f.write(json.dumps(row) + "\n")
+        assert margin > 0, f"{name} = {value:.4g}, must be {op} {bound:.4g} (seed {self.seed}, " \
+                           f"{self.threads} threads): {context if context is not None else ''}"
+
+
+@pytest.fixture
+def learning(request):
+    assert request.node.get_closest_marker("learning"), "tests that use `learning` are marked learning"
+    return Learning(request.node.nodeid)
 
 
 @pytest.fixture(autouse=True)
@@ -46,7 +92,7 @@ def tiny_lm(tmp_path_factory):
             from posttrain.models import bootstrap
 
             out = tmp_path_factory.mktemp("tiny-lm") / "model"
-            bootstrap("tiny", tasks.get_task(task).corpus(200, 0), out, vocab_size=vocab_size, seed=0,
+            bootstrap("tiny", tasks.get_task(task).corpus(200, 0), out, vocab_size=vocab_size, seed=TEST_SEED,
                       max_length=max_length, **options)
             built[key] = out
         return built[key]
@@ -68,7 +114,7 @@ def tiny_rm(tmp_path_factory, tiny_lm):
 
             lm = tiny_lm(task, vocab_size=vocab_size, max_length=max_length)
             tok = load_tokenizer(lm)
-            torch.manual_seed(seed)
+            torch.manual_seed(seed + TEST_SEED)
             rm = AutoModelForSequenceClassification.from_pretrained(str(lm), num_labels=1)
             rm.config.pad_token_id = tok.pad_token_id
             torch.nn.init.normal_(rm.score.weight, std=std)  # a head with visible outputs

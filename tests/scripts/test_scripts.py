@@ -72,3 +72,18 @@ def test_bench_uses_library_api_only():
         module = importlib.import_module(m)
         assert n is None or hasattr(module, n) or importlib.util.find_spec(f"{m}.{n}") is not None, \
             f"bench.py imports {m}.{n}, which does not exist"
+
+
+def test_test_margins_summarizes_each_check_by_its_worst_run():
+    margins = _load(SCRIPTS / "test_margins.py")
+    checks = [{"test": "tests/a.py::test_x", "check": "reward rise", "op": ">", "bound": 0.1, "value": v,
+               "margin": v - 0.1, "seed": s, "threads": t} for v, s, t in ((0.3, 0, 1), (0.05, 1, 2), (0.5, 2, 1))]
+    checks.append({"test": "tests/a.py::test_x", "check": "no eos", "op": "<", "bound": 0.3, "value": 0.2,
+                   "margin": 0.1, "seed": 0, "threads": 1})
+    rows = {r["check"]: r for r in margins.summarize(checks)}
+    rise = rows["reward rise"]
+    assert (rise["worst"], rise["median"], rise["best"]) == (0.05, 0.3, 0.5)
+    assert rise["worst_margin"] == pytest.approx(-0.05) and rise["worst_at"] == "seed 1, 2 thr"
+    assert (rise["runs"], rise["failed"]) == (3, 1)
+    assert rows["no eos"]["best"] == 0.2 and rows["no eos"]["failed"] == 0
+    assert "| test_x | reward rise | > 0.1 | 0.05 |" in margins.table(list(rows.values()))

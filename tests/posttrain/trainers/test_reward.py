@@ -35,16 +35,17 @@ def _args(world, out: Path, *extra: str, train: Path | None = None) -> list[str]
             "run.threads=1", *extra]
 
 
-def test_reward_model_learns_and_reloads_as_a_hf_directory(world, tmp_path):
+@pytest.mark.learning
+def test_reward_model_learns_and_reloads_as_a_hf_directory(world, tmp_path, learning):
     from transformers import AutoModelForSequenceClassification, AutoTokenizer
 
     from posttrain.scoring import RewardModelScorer, rm_token_ids
 
     out = tmp_path / "rm"
-    assert main(_args(world, out, "max_steps=16", "lr=3e-3", "batch_size=8", "eval_every=8")) == 0
+    assert main(_args(world, out, "max_steps=16", "lr=3e-3", "batch_size=8", "eval_every=8", *learning.overrides)) == 0
     run = out / "tiny-summarize" / "rm"
     ev = json.loads((run / "eval.json").read_text())["heldout"]
-    assert ev["eval/accuracy"] >= 0.85, ev  # 48 held-out pairs on prompts never trained on
+    learning.above("held-out pair accuracy", ev["eval/accuracy"], 0.85, ev)  # 48 pairs, prompts never trained on
     rows = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
     assert any("eval/accuracy" in r and r["step"] == 8 for r in rows) and any("accuracy" in r for r in rows)
 
@@ -61,7 +62,7 @@ def test_reward_model_learns_and_reloads_as_a_hf_directory(world, tmp_path):
         assert ours == pytest.approx(plain, abs=1e-4), side
     wins = [c > r for c, r in zip(scorer.score([h["prompt"] for h in held], [h["chosen"] for h in held]).rewards,
                                   scorer.score([h["prompt"] for h in held], [h["rejected"] for h in held]).rewards)]
-    assert sum(wins) >= 6
+    learning.above("scorer wins of 8 held-out pairs", sum(wins), 5.5)
 
 
 def test_reward_model_bad_rows(world, tmp_path, capsys, write_jsonl):

@@ -23,18 +23,21 @@ def _metrics(run: Path) -> list[dict]:
 
 
 @pytest.mark.slow
-def test_sft_learns_and_saves_hf_dir(tmp_path, capsys):
-    rc = main(["sft", "--recipe", "tiny-summarize", f"run.output_dir={tmp_path}", "max_steps=120", "lr=5e-3"] + FAST)
+@pytest.mark.learning
+def test_sft_learns_and_saves_hf_dir(tmp_path, capsys, learning):
+    rc = main(["sft", "--recipe", "tiny-summarize", f"run.output_dir={tmp_path}", "max_steps=120", "lr=5e-3"] + FAST
+              + learning.overrides)
     assert rc == 0
     run = tmp_path / "tiny-summarize" / "sft"
     rows = [r for r in _metrics(run) if "loss" in r]
-    assert rows[-1]["loss"] < 0.5 * rows[0]["loss"], rows
+    learning.above("loss first/last", rows[0]["loss"] / rows[-1]["loss"], 2.0, rows)
     ev = json.loads((run / "eval.json").read_text())
-    # 120 steps teach the format and the length (content needs the recipe's 800 steps: quality 0.57)
+    # 120 steps teach the format and the length (content needs the recipe's 800 steps)
     before, after = ev["untrained"], ev["sft"]
-    assert after["mean_distance"] < before["mean_distance"] - 5, ev   # words away from the length band
-    assert after["frac_in_band"] >= before["frac_in_band"] + 0.25, ev
-    assert after["frac_empty"] <= 0.05 and after["frac_degenerate"] <= before["frac_degenerate"], ev
+    learning.above("words out of band, untrained - sft", before["mean_distance"] - after["mean_distance"], 5, ev)
+    learning.above("in band, sft - untrained", after["frac_in_band"] - before["frac_in_band"], 0.25, ev)
+    learning.below("empty summaries", after["frac_empty"], 0.05, ev)
+    assert after["frac_degenerate"] <= before["frac_degenerate"], ev
     out = capsys.readouterr().out
     assert "untrained" in out and "sft" in out
     from transformers import AutoModelForCausalLM, AutoTokenizer
