@@ -127,8 +127,8 @@ def ensure_stage(res: Resolved, stage: str) -> Path:
     A stage's output is `runs/<recipe>/<stage>/final` (a model directory or a data file),
     complete once it exists: stages write it atomically as their last act.
     """
-    if stage == "base":
-        return ensure_base(res)
+    if stage == "base" or (stage == "sft" and res.model.start_from == "base" and res.stage != "sft"):
+        return ensure_base(res)  # model.start_from=base: the given model is the "SFT model" of later stages
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}")  # our bug: trainers only ask for real stages
     final = res.stage_dir(stage) / "final"

@@ -44,7 +44,11 @@ class TaskConfig:
 @dataclass
 class ModelConfig:
     path: str = "tiny"
-    """A preset (tiny, small, base) built from scratch, or a local Hugging Face model directory."""
+    """A preset (tiny, small, base) built from scratch, a local Hugging Face model directory, or a .gguf file
+    (dequantized once into <run.output_dir>/models/; `posttrain models --help`)."""
+    start_from: Literal["sft", "base"] = "sft"
+    """What the stages after SFT (prefs, rm, dpo, ppo, grpo, eval) start from: sft (this recipe's SFT model,
+    trained first if missing) or base (model.path as it is: an instruct model that needs no SFT)."""
     vocab_size: int = 1024
     """Tokenizer vocabulary size when a preset is built from scratch."""
     max_length: int = 256
@@ -72,6 +76,10 @@ class RunConfig:
     """torch CPU threads (0: leave torch's default)."""
     quiet: bool = False
     """No progress bar; metrics still go to metrics.jsonl."""
+    micro_batch_tokens: int = 0
+    """Padded tokens per forward / backward in every stage, a bound on activation memory (each stage's
+    micro_batch_size still caps the rows); 0: auto, the tokens whose activations take ~2 GiB for this model
+    (posttrain.models.token_budget: ~32k for the tiny preset, ~1.1k for a 135M model with a 49k vocabulary)."""
 
 
 @dataclass

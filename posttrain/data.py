@@ -386,3 +386,37 @@ def collate_completions(pairs: list[tuple[list[int], list[int]]], pad_id: int) -
         attention_mask[i, :n] = 1
         completion_mask[i, len(p):n] = True
     return {"input_ids": input_ids, "attention_mask": attention_mask, "completion_mask": completion_mask}
+
+
+def token_groups(spans: Sequence[tuple[int, int]], max_rows: int = 0, max_tokens: int = 0,
+                 rows_per_item: int = 1) -> list[list[int]]:
+    """Consecutive groups of item indices for micro-batches: each group's padded size, rows x (its widest
+    column span: max end - min start, the columns a trimmed batch keeps), stays within `max_tokens`, and it
+    has at most `max_rows` items (0: no limit on either). An item (`rows_per_item` rows: 2 for a preference
+    pair) wider than the budget forms a group alone. spans: (start, end) columns of each item's tokens
+    (unpadded lists: (0, length))."""
+    groups: list[list[int]] = []
+    cur: list[int] = []
+    lo = hi = 0
+    for i, (a, b) in enumerate(spans):
+        nlo, nhi = (min(lo, a), max(hi, b)) if cur else (a, b)
+        full = (max_rows and len(cur) >= max_rows) or \
+            (max_tokens and (len(cur) + 1) * rows_per_item * (nhi - nlo) > max_tokens)
+        if cur and full:
+            groups.append(cur)
+            cur, nlo, nhi = [], a, b
+        cur.append(i)
+        lo, hi = nlo, nhi
+    if cur:
+        groups.append(cur)
+    return groups
+
+
+def row_spans(attention_mask: torch.Tensor) -> list[tuple[int, int]]:
+    """(first, last + 1) real column of each row of a (B, T) 0/1 mask, (0, 0) for an all-padding row: the
+    `token_groups` spans of a padded batch."""
+    real = attention_mask.bool()
+    cols = torch.arange(real.shape[1], device=real.device)
+    first = torch.where(real, cols, real.shape[1]).min(1).values
+    last = torch.where(real, cols, -1).max(1).values + 1
+    return [(int(a), int(b)) if b > 0 else (0, 0) for a, b in zip(first.tolist(), last.tolist())]

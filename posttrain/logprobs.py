@@ -33,6 +33,7 @@ from typing import Any, Mapping
 
 import torch
 
+from posttrain.data import row_spans, token_groups
 from posttrain.lean import train as lean
 from posttrain.lean.support import lean_support
 from posttrain.models import accepts, model_device, position_ids_from_mask, unwrap_model  # noqa: F401
@@ -100,12 +101,12 @@ def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tens
         # Same numbers as the branch below (fp32 rounding), fewer ops: see posttrain/lean.py.
         first, row_of = lean.shared_prefix_rows(input_ids, attention_mask, c)
         if len(first) * c + B * (T - c) <= SHARE_PREFIX_BELOW * B * T:  # e.g. GRPO's K completions per prompt
-            logits = lean.lean_forward_shared(model, input_ids, attention_mask, c, first, row_of,
-                                                    temperature)  # (B, T-c, V)
+            x = lean.lean_hidden_shared(model, input_ids, attention_mask, c, first, row_of)  # (B, T-c, d)
         else:
-            logits = lean.lean_forward(model, input_ids, attention_mask, position_ids_from_mask(attention_mask),
-                                             positions=slice(c - 1, T - 1), temperature=temperature)  # (B, T-c, V)
-        logp, ent = lean.token_logprobs_fused(logits, input_ids[:, c:], return_entropy, entropy_grad)  # (B, T-c)
+            x = lean.lean_last_layer(model, input_ids, attention_mask)[:, c - 1:T - 1]  # (B, T-c, d)
+        # the head: one fused pass, or row chunks when the (B, T-c, V) logits would be large (real vocabularies)
+        logp, ent = lean.lean_token_logprobs(model, x, input_ids[:, c:], temperature, return_entropy,
+                                             entropy_grad)  # (B, T-c)
         return _place(logp, ent, completion_mask, c)
     kw: dict[str, Any] = {}
     if accepts(model, "position_ids"):
@@ -155,8 +156,8 @@ def packed_logprobs(model, input_ids: torch.Tensor, position_ids: torch.Tensor, 
     if lean_support(model, T, mode="train")[0]:  # same numbers within fp32 rounding, fewer ops
         x = lean.lean_packed_hidden(model, input_ids.to(dev), position_ids.to(dev), allowed.to(dev))  # (B, T, d)
         idx = pred_index.masked_fill(~m, 0)  # (B, L)
-        picked = lean.lean_logits(model, x.gather(1, idx[..., None].expand(-1, -1, x.shape[-1])))  # (B, L, V)
-        logp, _ = lean.token_logprobs_fused(picked, targets.masked_fill(~m, 0))  # (B, L)
+        picked = x.gather(1, idx[..., None].expand(-1, -1, x.shape[-1]))  # (B, L, d)
+        logp, _ = lean.lean_token_logprobs(model, picked, targets.masked_fill(~m, 0))  # (B, L)
         return logp * m.to(logp.dtype)
     lo = int(pred_index[m].min())  # first column whose logits are needed
     kw: dict[str, Any] = {}
@@ -175,9 +176,10 @@ def packed_logprobs(model, input_ids: torch.Tensor, position_ids: torch.Tensor, 
 
 @torch.no_grad()
 def batched_logprobs(model, batch: Any, micro_batch_size: int = 16, *, temperature: float = 1.0,
-                     return_entropy: bool = False):
+                     return_entropy: bool = False, max_tokens: int = 0):
     """`sequence_logprobs` without grad over a RolloutBatch (or a mapping with input_ids, attention_mask,
-    completion_mask) in micro-batches; all-padding columns of each micro-batch are trimmed first.
+    completion_mask) in micro-batches of at most `micro_batch_size` rows and `max_tokens` padded tokens (0: no
+    token limit); all-padding columns of each micro-batch are trimmed first.
     Returns (logps (B, T), entropy (B, T) | None) on the batch's device."""
     get = (lambda k: batch[k]) if isinstance(batch, Mapping) else (lambda k: getattr(batch, k))
     input_ids, attention_mask = get("input_ids"), get("attention_mask")
@@ -190,8 +192,8 @@ def batched_logprobs(model, batch: Any, micro_batch_size: int = 16, *, temperatu
     B, T = input_ids.shape
     out = torch.zeros(B, T, dtype=torch.float32, device=input_ids.device)
     ent_out = torch.zeros_like(out) if return_entropy else None
-    for i in range(0, B, micro_batch_size):
-        sl = slice(i, i + micro_batch_size)
+    for group in token_groups(row_spans(attention_mask), micro_batch_size, max_tokens):
+        sl = slice(group[0], group[-1] + 1)
         am = attention_mask[sl]
         live = am.any(0).nonzero()
         if live.numel() == 0:

@@ -37,6 +37,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 import torch
 
+from posttrain.data import token_groups  # noqa: F401  (micro-batches by tokens; importable from here)
 from posttrain.errors import TrainingError  # noqa: F401  (raised here; importable from here as before)
 from posttrain.runtime import has_accelerator_device, set_threads, tune_malloc
 
@@ -160,17 +161,27 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
     (e.g. its loss tokens / the batch's). The averaged metrics are then the weighted means over the
     micro-batches of every process, so a token-mean metric is the whole batch's token mean. A micro-batch of
     weight 0 (a padding copy that keeps the processes' all-reduces in step) adds nothing to any metric.
+
+    Several processes may bring different numbers of micro-batches (token budgets split long rows finer):
+    each runs as many as the most any process has, the extra ones copies of its last with their loss times 0
+    (no gradient, no metric), so every process's collectives and DDP's gradient all-reduce line up.
     """
     model.train()
     totals: dict[str, float] = {}
     loss_total = 0.0
     if weights is not None and len(weights) != len(micro_batches):
         raise ValueError(f"optimizer_step: {len(weights)} weights for {len(micro_batches)} micro-batches")
+    real = len(micro_batches)
+    if accelerator.num_processes > 1:
+        most = int(accelerator.gather(torch.tensor([real], device=accelerator.device)).max())
+        micro_batches = list(micro_batches) + [micro_batches[-1]] * (most - real)
     for i, mb in enumerate(micro_batches):
         last = i == len(micro_batches) - 1
         ctx = accelerator.no_sync(model) if (not last and accelerator.num_processes > 1) else _null()
         with ctx:
             loss, metrics = loss_fn(mb)
+            if i >= real:  # a copy that only keeps this process in step with the others
+                loss, metrics = loss * 0.0, {}
             finite = bool(torch.isfinite(loss))
             bad = 0.0 if finite else 1.0
             if accelerator.num_processes > 1:  # every process stops at the same micro-batch, none waits in backward
@@ -182,7 +193,7 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
                                     "The last good checkpoint is intact: lower the learning rate and resume.")
             accelerator.backward(loss)
         loss_total += loss.item()
-        w = 1.0 if weights is None else float(weights[i])
+        w = 1.0 if weights is None else float(weights[i]) if i < real else 0.0
         for k, v in metrics.items():
             if k.endswith("_max"):
                 v = float(v) if (v == v and w != 0.0) else -math.inf
@@ -200,7 +211,7 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
     optimizer.step()
     scheduler.step()
     optimizer.zero_grad(set_to_none=True)
-    n = len(micro_batches) if weights is None else 1  # weighted: the sums are already the means
+    n = real if weights is None else 1  # weighted: the sums are already the means
     out = {k: (v if k.endswith(("_sum", "_max")) else v / n) for k, v in totals.items()}
     out["loss"] = loss_total
     if accelerator.num_processes > 1:
@@ -268,6 +279,7 @@ def batch_indices(n: int, batch_size: int, seed: int, step: int, rank: int = 0, 
 
 def chunks(seq: list[Any], size: int) -> list[list[Any]]:
     return [seq[i:i + size] for i in range(0, len(seq), max(1, size))]
+
 
 
 # ----------------------------------------------------------------------------- metrics

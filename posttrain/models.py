@@ -277,6 +277,31 @@ def save_model(model, tokenizer, out_dir: str | os.PathLike) -> Path:
     return out
 
 
+# run.micro_batch_tokens=0 sizes micro-batches so that their activations take about this much memory.
+ACTIVATION_BUDGET_BYTES = 2 * 2**30
+
+
+def activation_bytes_per_token(config) -> int:
+    """Rough bytes one token's activations keep for the backward pass of a decoder-only LM in fp32: per layer
+    ~10 hidden-size vectors (norms, q, attention output, projections, residuals), 3 key/value-size ones and
+    4 MLP-size ones (gate, up, activation, product), plus the logits and their softmax (the HF forward's head;
+    the lean path chunks it). Measured against the HF Llama forward's saved tensors: RESULTS.md, "Memory"."""
+    d = config.hidden_size
+    heads = config.num_attention_heads
+    kv = (getattr(config, "num_key_value_heads", None) or heads) * (getattr(config, "head_dim", None) or d // heads)
+    mlp = getattr(config, "intermediate_size", None) or 4 * d
+    per_layer = 10 * d + 3 * kv + 4 * mlp
+    return 4 * (config.num_hidden_layers * per_layer + 2 * config.vocab_size)
+
+
+def token_budget(setting: int, model) -> int:
+    """Padded tokens per micro-batch: `run.micro_batch_tokens` when set, else those whose activations take
+    ACTIVATION_BUDGET_BYTES for `model` (at least 256)."""
+    if setting:
+        return int(setting)
+    return max(256, ACTIVATION_BUDGET_BYTES // activation_bytes_per_token(unwrap_model(model).config))
+
+
 def count_parameters(model) -> int:
     return sum(p.numel() for p in model.parameters())
 

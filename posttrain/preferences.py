@@ -545,15 +545,28 @@ def by_side(s: torch.Tensor, n: torch.Tensor, B: int) -> dict[str, torch.Tensor]
     return {"chosen": s[:B], "rejected": s[B:], "chosen_tokens": n[:B], "rejected_tokens": n[B:]}
 
 
+def pair_groups(pairs: Sequence[TokenizedPair], max_rows: int, max_tokens: int = 0,
+                share_prompt: bool = False) -> list[list[int]]:
+    """Indices of `pairs` in micro-batches of at most `max_rows` pairs and `max_tokens` padded tokens as
+    `collate_pairs` lays them out: two rows per pair (prompt + the longer side), or one shared-prompt row
+    (prompt + chosen + rejected)."""
+    if share_prompt:
+        return loop.token_groups([(0, len(p.prompt) + len(p.chosen) + len(p.rejected)) for p in pairs], max_rows,
+                                 max_tokens)
+    return loop.token_groups([(0, len(p.prompt) + max(len(p.chosen), len(p.rejected))) for p in pairs], max_rows,
+                             max_tokens, rows_per_item=2)
+
+
 @torch.no_grad()
 def reference_logps(model, pairs: list[TokenizedPair], pad_id: int, micro_batch_size: int,
-                    share_prompt: bool = True) -> dict[str, torch.Tensor]:
+                    share_prompt: bool = True, max_tokens: int = 0) -> dict[str, torch.Tensor]:
     """The no-grad `pair_logps` of every pair, by side: {"chosen", "rejected", "chosen_tokens", "rejected_tokens"},
-    (N,) tensors on CPU, one entry per pair (DPO's precomputed reference)."""
+    (N,) tensors on CPU, one entry per pair (DPO's precomputed reference); micro-batches of at most
+    `micro_batch_size` pairs and `max_tokens` padded tokens (`pair_groups`)."""
     was_training = model.training
     model.eval()
-    parts = [by_side(*pair_logps(model, collate_pairs(chunk, pad_id, share_prompt)), len(chunk))
-             for chunk in loop.chunks(pairs, micro_batch_size)]
+    chunks = [[pairs[i] for i in g] for g in pair_groups(pairs, micro_batch_size, max_tokens, share_prompt)]
+    parts = [by_side(*pair_logps(model, collate_pairs(chunk, pad_id, share_prompt)), len(chunk)) for chunk in chunks]
     model.train(was_training)
     return {k: torch.cat([p[k].cpu() for p in parts]) if parts else torch.zeros(0)
             for k in ("chosen", "rejected", "chosen_tokens", "rejected_tokens")}

@@ -11,7 +11,7 @@ into global order, so everything computed from the gathered batch (normalisation
 dynamic sampling, logged statistics) is global and identical on every process. Updates split each global
 minibatch the same strided way; each process scales its loss to its share of the whole minibatch times W,
 so DDP's gradient average is the one-process gradient (`micro_batches` for GRPO's aggregations,
-`global_token_mean` for PPO's token means).
+`token_share` for PPO's token means).
 """
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ from typing import Any
 
 import torch
 
+from posttrain.data import row_spans, token_groups
 from posttrain.logprobs import batched_logprobs
 
 
@@ -46,12 +47,14 @@ def gather_row_tensor(accelerator, local: torch.Tensor, where: list[int]) -> tor
     return torch.empty_like(rows).index_copy_(0, at, rows)
 
 
-def sharded_logprobs(accelerator, model, batch: Any, micro_batch_size: int, temperature: float = 1.0) -> torch.Tensor:
+def sharded_logprobs(accelerator, model, batch: Any, micro_batch_size: int, temperature: float = 1.0,
+                     max_tokens: int = 0) -> torch.Tensor:
     """No-grad log-probs (B, T) of every row of `batch` (input_ids / attention_mask / completion_mask) under
-    `model`: each process computes its rows r, r + W, ..., then they are gathered, so every process holds
-    all rows (shares padded to the largest one for the gather)."""
+    `model`: each process computes its rows r, r + W, ... (micro-batches of at most `micro_batch_size` rows and
+    `max_tokens` padded tokens), then they are gathered, so every process holds all rows (shares padded to
+    the largest one for the gather)."""
     if accelerator is None or accelerator.num_processes == 1:
-        return batched_logprobs(model, batch, micro_batch_size, temperature=temperature)[0]
+        return batched_logprobs(model, batch, micro_batch_size, temperature=temperature, max_tokens=max_tokens)[0]
     rank, world = accelerator.process_index, accelerator.num_processes
     ids = batch["input_ids"] if isinstance(batch, dict) else batch.input_ids
     am = batch["attention_mask"] if isinstance(batch, dict) else batch.attention_mask
@@ -62,7 +65,8 @@ def sharded_logprobs(accelerator, model, batch: Any, micro_batch_size: int, temp
     local = torch.zeros(share, T, dtype=torch.float32, device=ids.device)
     if len(own):
         rows = {"input_ids": ids[own], "attention_mask": am[own], "completion_mask": cm[own]}
-        local[:len(own)] = batched_logprobs(model, rows, micro_batch_size, temperature=temperature)[0]
+        local[:len(own)] = batched_logprobs(model, rows, micro_batch_size, temperature=temperature,
+                                            max_tokens=max_tokens)[0]
     every = accelerator.gather(local)  # (W * share, T), process-major
     out = torch.empty(B, T, dtype=torch.float32, device=every.device)
     for p in range(world):
@@ -79,23 +83,23 @@ def trim_columns(rows: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 
 def micro_batches(rows: dict[str, torch.Tensor], idx: torch.Tensor, micro: int, aggregation: str,
-                  rank: int = 0, world: int = 1) -> list[tuple[dict[str, torch.Tensor], float, float]]:
+                  rank: int = 0, world: int = 1, max_tokens: int = 0) -> list[tuple[dict[str, torch.Tensor], float, float]]:
     """This process's micro-batches of the minibatch `idx` (process r takes rows r, r + W, ... of it), all-padding
     columns trimmed, each with (its share of the minibatch loss, its share of the minibatch's loss tokens).
 
     Shares are fractions of the WHOLE minibatch (all processes): aggregation "token_mean" weighs by loss
     tokens (`rows["loss_mask"]`), the others by rows, so the shares of all micro-batches of all processes sum
     to 1 and the accumulated (and, under DDP, averaged x W) gradient is the whole minibatch's aggregation.
-    micro = 0: one micro-batch per process. Every process returns the same number of micro-batches (a process
-    short of rows gets copies of a real row with share 0), so the DDP all-reduces of the last one line up."""
+    A micro-batch has at most `micro` rows (0: no row limit) and `max_tokens` padded tokens (0: no limit).
+    A process without rows gets one copy of a real row with share 0; `loop.optimizer_step` evens out the
+    numbers of micro-batches across processes, so the DDP all-reduces line up."""
     total_rows = len(idx)
     total_tokens = float(rows["loss_mask"][idx].sum())
     mine = idx[rank::world]
-    largest = -(-total_rows // world)  # rows of the largest share
-    micro = micro or largest
+    groups = token_groups(row_spans(rows["attention_mask"][mine]), micro, max_tokens) if len(mine) else [[]]
     out = []
-    for i in range(-(-largest // micro)):
-        sel = mine[i * micro:(i + 1) * micro]
+    for g in groups:
+        sel = mine[torch.as_tensor(g, dtype=torch.long, device=mine.device)]
         real = len(sel) > 0
         if not real:
             sel = idx[:1]
@@ -106,32 +110,14 @@ def micro_batches(rows: dict[str, torch.Tensor], idx: torch.Tensor, micro: int, 
     return out
 
 
-# Token means among PPO's policy / value metrics: rescaled with the loss by `global_token_mean`.
-TOKEN_MEAN_METRICS = frozenset({"clip_frac", "clip_frac_low", "clip_frac_high", "approx_kl", "ratio_mean", "entropy",
-                                "value_clip_frac", "value_mean"})
-
-
-def global_token_mean(accelerator, loss: torch.Tensor, metrics: dict[str, float], n_local: float,
-                      n_global: float) -> tuple[torch.Tensor, dict[str, float]]:
-    """A process's token-mean loss and metrics over its rows of a minibatch, rescaled by
-    n_local / n_global * W: DDP's gradient average and `loop.optimizer_step`'s metric average over
-    processes then give the token mean over the whole minibatch, as one process computes it.
-    ratio_max becomes the max over processes. A non-finite loss on any process makes every process's
-    loss NaN, so all of them stop at the same step (none waits forever in the next all-reduce).
-    The identity in one process."""
+def token_share(accelerator, loss: torch.Tensor, n_local: float, n_global: float) -> torch.Tensor:
+    """A token-mean loss over `n_local` of a minibatch's `n_global` loss tokens (all processes), times
+    n_local / n_global * W: summed over a process's micro-batches and averaged over the W processes by DDP, the
+    gradient is the whole minibatch's token mean, as one process computes it in one piece. Pass n_local /
+    n_global as the micro-batch's weight to `loop.optimizer_step` and its token-mean metrics are the
+    minibatch's too (PPO)."""
     W = 1 if accelerator is None else accelerator.num_processes
-    if W == 1:
-        return loss, metrics
-    f = n_local * W / n_global
-    out = {k: (v * f if k in TOKEN_MEAN_METRICS else v) for k, v in metrics.items()}
-    mine = torch.tensor([[0.0 if bool(torch.isfinite(loss)) else 1.0, metrics.get("ratio_max", 0.0)]],
-                        dtype=torch.float64, device=accelerator.device)
-    every = accelerator.gather(mine)  # (W, 2)
-    if "ratio_max" in metrics:
-        out["ratio_max"] = float(every[:, 1].max())
-    if float(every[:, 0].sum()) > 0:
-        loss = loss * float("nan")
-    return loss * f, out
+    return loss * (n_local * W / n_global)
 
 
 def global_explained_variance(accelerator, values: torch.Tensor, returns: torch.Tensor,

@@ -9,6 +9,7 @@ and how many runs failed it.
 
     python scripts/test_margins.py                       # seeds 0-3 x threads 1, 2 (~30 min on 2 cores)
     python scripts/test_margins.py --seeds 0 1 --threads 1 -k grpo
+    python scripts/test_margins.py --real --threads 2     # the real-model tier's bounds too
     python scripts/test_margins.py --json margins.json   # the raw checks, for RESULTS.md ("Test margins")
 
 Runs go one at a time: a 2-thread run beside another torch process crawls, and so would its numbers' runtime
@@ -29,12 +30,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def run_once(seed: int, threads: int, record: Path, select: str | None = None) -> tuple[int, float]:
+def run_once(seed: int, threads: int, record: Path, select: str | None = None, real: bool = False) -> tuple[int, float]:
     """One pass of the `learning` tests at (seed, threads); checks are appended to `record`. Returns the
     pytest exit code and seconds."""
     env = dict(os.environ, POSTTRAIN_TEST_SEED=str(seed), POSTTRAIN_TEST_THREADS=str(threads),
                POSTTRAIN_MARGINS=str(record))
-    cmd = [sys.executable, "-m", "pytest", "-q", "-m", "learning", "-p", "no:cacheprovider", "tests"]
+    marks = "learning" if real else "learning and not real"
+    cmd = [sys.executable, "-m", "pytest", "-q", "-m", marks, "-p", "no:cacheprovider", "tests"]
     if select:
         cmd += ["-k", select]
     t0 = time.time()
@@ -74,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("-k", dest="select", help="pytest -k expression: only these learning tests")
+    ap.add_argument("--real", action="store_true", help="the real-model tier's learning tests too (tests/real/)")
     ap.add_argument("--json", type=Path, help="write the raw checks and the summary here")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="posttrain-margins-") as tmp:
@@ -82,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         passes = []
         for threads in args.threads:
             for seed in args.seeds:
-                rc, secs = run_once(seed, threads, record, args.select)
+                rc, secs = run_once(seed, threads, record, args.select, args.real)
                 passes.append({"seed": seed, "threads": threads, "pytest_rc": rc, "seconds": round(secs, 1)})
                 print(f"seed {seed}, {threads} thread(s): pytest exit {rc} in {secs:.0f} s", flush=True)
         checks = [json.loads(l) for l in record.read_text().splitlines() if l.strip()]

@@ -11,8 +11,8 @@
   visible outputs, seeded), saved with the tokenizer; built once per session and settings.
 - `write_jsonl(path, rows)`: rows as a JSONL file; returns the path.
 - `learning` (tests marked `learning`): the seed and thread count of a run whose result is a learned number,
-  and `learning.above(name, value, bound)` / `learning.below(...)` to assert it. The defaults (seed 0, one
-  thread) are what CI runs; POSTTRAIN_TEST_SEED / POSTTRAIN_TEST_THREADS change them, and with
+  and `learning.above(name, value, bound)` / `learning.below(...)` to assert it. The defaults (seed 0, the
+  thread count each test pins) are what CI runs; POSTTRAIN_TEST_SEED / POSTTRAIN_TEST_THREADS change them, and with
   POSTTRAIN_MARGINS=FILE every check is appended to FILE, so `scripts/test_margins.py` can measure each
   bound's margin over several seeds and both thread counts (RESULTS.md, "Test margins"). A bound must hold
   with room at every seed and thread count measured there, not only at the one CI happens to run.
@@ -29,20 +29,21 @@ import torch
 
 
 TEST_SEED = int(os.environ.get("POSTTRAIN_TEST_SEED", "0"))
-TEST_THREADS = int(os.environ.get("POSTTRAIN_TEST_THREADS", "1"))
+TEST_THREADS = int(os.environ["POSTTRAIN_TEST_THREADS"]) if os.environ.get("POSTTRAIN_TEST_THREADS") else None
 
 
 @dataclass
 class Learning:
     test: str
     seed: int = TEST_SEED
-    threads: int = TEST_THREADS
+    threads: int | None = TEST_THREADS  # None: the thread count the test pins itself
     checks: list = field(default_factory=list)
 
     @property
     def overrides(self) -> list[str]:
-        """Stage seed, model-init seed and thread count of the run (after a test's own pinned options)."""
-        return [f"seed={self.seed}", f"model.seed={self.seed}", f"run.threads={self.threads}"]
+        """Stage seed, model-init seed and (when set) thread count of the run: after a test's own options."""
+        return [f"seed={self.seed}", f"model.seed={self.seed}"] + \
+            ([f"run.threads={self.threads}"] if self.threads else [])
 
     def above(self, name: str, value: float, bound: float, context=None) -> None:
         self._check(name, float(value), ">", float(bound), float(value) - float(bound), context)

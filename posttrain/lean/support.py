@@ -32,6 +32,14 @@ from torch import nn
 
 ENABLED = os.environ.get("POSTTRAIN_LEAN_TRAIN", "1").strip().lower() not in ("0", "false", "no", "off")
 LEAN_MODEL_TYPES = ("llama", "mistral", "qwen2")
+# Architectures users bring that fall back to the Hugging Face forward, and what the lean paths lack for them
+# (README "Model support"; each row is tested on a tiny config: tests/posttrain/lean/test_model_support.py).
+FALLBACK_REASONS = {
+    "qwen3": "RMSNorms on q and k inside attention",
+    "gemma2": "logit soft-capping, (1 + w) norms, scaled embeddings, alternating sliding windows",
+    "phi3": "fused qkv and gate/up projections",
+    "gpt2": "learned positions, LayerNorm, GELU, fused qkv (not a Llama-family model)",
+}
 MODES = ("decode", "train")
 
 
@@ -168,7 +176,8 @@ def lean_support(model, seq_len: int | None = None, *, mode: str = "decode", hea
         return False, "model has no config"
     mt = getattr(cfg, "model_type", None)
     if mt not in LEAN_MODEL_TYPES:
-        return False, f"model_type {mt!r} is not one of {LEAN_MODEL_TYPES}"
+        known = f": {FALLBACK_REASONS[mt]}" if mt in FALLBACK_REASONS else ""
+        return False, f"model_type {mt!r} is not one of {LEAN_MODEL_TYPES}{known}"
     linear_problem = _plain if train else plain_or_lora
     out_name = "lm_head" if head == "lm" else "score"
     base, out = getattr(model, "model", None), getattr(model, out_name, None)

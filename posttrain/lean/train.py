@@ -172,6 +172,12 @@ def lean_forward(model, input_ids: torch.Tensor, attention_mask: torch.Tensor, p
     return lean_logits(model, x, temperature)  # (B, K, V)
 
 
+def lean_last_layer(model, input_ids: torch.Tensor, attention_mask: torch.Tensor) -> torch.Tensor:
+    """The last decoder layer's outputs (B, T, d) BEFORE the final norm (`lean_logits` / `lean_token_logprobs`
+    apply norm and head), positions from the mask; differentiable."""
+    return _rows_forward(model, input_ids, attention_mask, position_ids_from_mask(attention_mask))
+
+
 def lean_hidden(model, input_ids: torch.Tensor, attention_mask: torch.Tensor,
                 position_ids: torch.Tensor | None = None) -> torch.Tensor:
     """The decoder's last hidden states (B, T, d) after the final norm: what `model.model(...).last_hidden_state`
@@ -204,7 +210,14 @@ def shared_prefix_rows(input_ids: torch.Tensor, attention_mask: torch.Tensor, c:
 
 def lean_forward_shared(model, input_ids: torch.Tensor, attention_mask: torch.Tensor, c: int,
                         first: torch.Tensor, row_of: torch.Tensor, temperature: float = 1.0) -> torch.Tensor:
-    """`lean_forward(..., positions=slice(c - 1, T - 1))` computed with each distinct prefix (columns < c) run
+    """Logits (B, T-c, V) of `lean_hidden_shared` (final norm and lm_head applied)."""
+    return lean_logits(model, lean_hidden_shared(model, input_ids, attention_mask, c, first, row_of), temperature)
+
+
+def lean_hidden_shared(model, input_ids: torch.Tensor, attention_mask: torch.Tensor, c: int,
+                       first: torch.Tensor, row_of: torch.Tensor) -> torch.Tensor:
+    """The last layer's outputs (B, T-c, d) for columns c-1 .. T-2 (those whose logits predict columns c ..),
+    as `lean_forward(..., positions=slice(c - 1, T - 1))` before its head, computed with each distinct prefix (columns < c) run
     once: rows `first` carry the U distinct prefixes, row_of (B,) maps each row to its prefix
     (`shared_prefix_rows`). The prefix tokens attend among themselves; each row's suffix tokens attend to
     its prefix's keys and values (gathered, so gradients reach the shared computation from every row) and
@@ -241,8 +254,7 @@ def lean_forward_shared(model, input_ids: torch.Tensor, attention_mask: torch.Te
     emb = model.model.embed_tokens
     x = _decoder(model, F.embedding(ids, emb.weight, emb.padding_idx), _cis(model, positions), attend)
     last = x[:Np].view(U, c, -1)[:, -1].index_select(0, row_of)  # (B, d): column c-1 of each row
-    x = torch.cat([last[:, None], x[Np:].view(B, S, -1)[:, :S - 1]], 1)  # (B, S, d): columns c-1 .. T-2
-    return lean_logits(model, x, temperature)  # (B, T-c, V)
+    return torch.cat([last[:, None], x[Np:].view(B, S, -1)[:, :S - 1]], 1)  # (B, S, d): columns c-1 .. T-2
 
 
 class _TargetLogprob(torch.autograd.Function):
@@ -276,6 +288,86 @@ class _TargetLogprob(torch.autograd.Function):
             mean = (p * logits).sum(-1, keepdim=True)  # E_p[x] (N, 1)
             grad.sub_(torch.sub(logits, mean).mul_(p).mul_(g_ent[:, None]))
         return grad, None, None, None
+
+
+class _ChunkedHeadLogprob(torch.autograd.Function):
+    """log p(target) (and the entropy) of logits = h @ W.T + b, `chunk` rows at a time. Saves h, W and the
+    (N,) logsumexp, never an (N, V) tensor: the backward recomputes each chunk's logits. Peak memory
+    O(chunk * V) instead of O(N * V), for one extra head matmul per chunk."""
+
+    @staticmethod
+    def forward(ctx, h, weight, bias, targets, chunk: int, want_entropy: bool, entropy_grad: bool):
+        N = h.shape[0]
+        logp, lse = h.new_empty(N), h.new_empty(N)
+        ent = h.new_empty(N) if want_entropy else None
+        for s in range(0, N, chunk):
+            x = F.linear(h[s:s + chunk], weight, bias)  # (n, V)
+            lse[s:s + chunk] = torch.logsumexp(x, -1)
+            logp[s:s + chunk] = x.gather(-1, targets[s:s + chunk, None]).squeeze(-1) - lse[s:s + chunk]
+            if want_entropy:  # H = lse - sum_v p_v * logit_v
+                ent[s:s + chunk] = lse[s:s + chunk] - (torch.sub(x, lse[s:s + chunk, None]).exp_() * x).sum(-1)
+        if want_entropy and not entropy_grad:
+            ctx.mark_non_differentiable(ent)
+        ctx.chunk, ctx.entropy_grad = chunk, want_entropy and entropy_grad
+        ctx.save_for_backward(h, weight, bias, targets, lse)
+        return logp, ent
+
+    @staticmethod
+    def backward(ctx, g, g_ent):
+        h, weight, bias, targets, lse = ctx.saved_tensors
+        chunk = ctx.chunk
+        gh = torch.empty_like(h) if ctx.needs_input_grad[0] else None
+        gw = torch.zeros_like(weight) if ctx.needs_input_grad[1] else None
+        gb = torch.zeros_like(bias) if bias is not None and ctx.needs_input_grad[2] else None
+        for s in range(0, h.shape[0], chunk):
+            hc = h[s:s + chunk]
+            x = F.linear(hc, weight, bias)  # (n, V)
+            p = torch.sub(x, lse[s:s + chunk, None]).exp_()
+            gc = g[s:s + chunk]
+            grad = p * gc.neg()[:, None]
+            grad.scatter_add_(-1, targets[s:s + chunk, None], gc[:, None])
+            if ctx.entropy_grad and g_ent is not None:  # dH/dx = -p * (x - E_p[x])
+                mean = (p * x).sum(-1, keepdim=True)
+                grad.sub_(x.sub_(mean).mul_(p).mul_(g_ent[s:s + chunk, None]))
+            if gh is not None:
+                gh[s:s + chunk] = grad @ weight
+            if gw is not None:
+                gw.addmm_(grad.t(), hc)
+            if gb is not None:
+                gb += grad.sum(0)
+        return gh, gw, gb, None, None, None, None
+
+
+# The (N, V) logits of one call are computed in row chunks (`_ChunkedHeadLogprob`) once they would exceed
+# this many elements (64 MiB in fp32): a 49k-vocabulary model's GRPO batch otherwise materialises GBs of
+# logits (and its softmax, saved for the backward). Below it the one-pass fused path runs (the presets'
+# batches are far below: their numbers do not change).
+HEAD_CHUNK_ELEMENTS = 1 << 24
+
+
+def lean_token_logprobs(model, x: torch.Tensor, targets: torch.Tensor, temperature: float = 1.0,
+                        return_entropy: bool = False, entropy_grad: bool = False,
+                        chunk_elements: int | None = None):
+    """Last-layer outputs x (..., d) and targets (...) -> (log p(target) (...), entropy (...) | None) under the
+    final norm and lm_head at `temperature`: `lean_logits` + `token_logprobs_fused` while the logits are at most
+    `chunk_elements` (None: HEAD_CHUNK_ELEMENTS), else the same numbers (fp32 rounding) in row chunks that never
+    hold all logits."""
+    if chunk_elements is None:
+        chunk_elements = HEAD_CHUNK_ELEMENTS
+    head = model.lm_head
+    V = head.weight.shape[0]
+    shape = targets.shape
+    N = targets.numel()
+    if N * V <= chunk_elements:
+        return token_logprobs_fused(lean_logits(model, x, temperature), targets, return_entropy, entropy_grad)
+    base = model.model
+    gf = base.norm.weight if temperature == 1.0 else base.norm.weight / temperature
+    hb = head.bias if head.bias is None or temperature == 1.0 else head.bias / temperature
+    h = (_rms(x, base.norm.variance_epsilon) * gf).reshape(N, -1)
+    chunk = max(1, chunk_elements // V)
+    logp, ent = _ChunkedHeadLogprob.apply(h, head.weight, hb, targets.reshape(-1), chunk, return_entropy,
+                                          entropy_grad)
+    return logp.view(shape), (ent.view(shape) if ent is not None else None)
 
 
 def token_logprobs_fused(logits: torch.Tensor, targets: torch.Tensor, return_entropy: bool = False,

@@ -50,7 +50,7 @@ import torch
 from posttrain import evaluation, loop, models, preferences, scoring, tasks
 from posttrain.config import ConfigError, Resolved
 from posttrain.losses import dpo_loss
-from posttrain.preferences import TokenizedPair, by_side, collate_pairs, pair_logps, reference_logps  # noqa: F401
+from posttrain.preferences import TokenizedPair, by_side, collate_pairs, pair_groups, pair_logps, reference_logps  # noqa: F401
 
 
 @dataclass
@@ -236,23 +236,23 @@ class Reference:
         return models.load_reference(self.res, policy, self.sft_dir, self.device)
 
 
-def precompute_reference(cfg: DPOConfig, model, data: PairData, pad_id: int, say) -> tuple[dict, dict]:
+def precompute_reference(cfg: DPOConfig, model, data: PairData, pad_id: int, budget: int, say) -> tuple[dict, dict]:
     """Reference log-probs of the held-out pairs and of the training pairs the run draws (the others NaN, unused)."""
     t0, micro = time.time(), cfg.micro_batch_size or cfg.batch_size
     offline_steps = min(cfg.max_steps, cfg.online_every) if cfg.online else cfg.max_steps  # online: then new pairs
     used = sorted({i for s in range(offline_steps)
                    for i in loop.batch_indices(len(data.train), cfg.batch_size, cfg.seed, s)})
-    ref_used = reference_logps(model, [data.train[i] for i in used], pad_id, micro, cfg.share_prompt)
+    ref_used = reference_logps(model, [data.train[i] for i in used], pad_id, micro, cfg.share_prompt, budget)
     ref_train = {k: torch.full((len(data.train),), float("nan")).index_copy(0, torch.tensor(used), v)
                  for k, v in ref_used.items()}
-    ref_heldout = reference_logps(model, data.heldout, pad_id, micro, cfg.share_prompt)
+    ref_heldout = reference_logps(model, data.heldout, pad_id, micro, cfg.share_prompt, budget)
     say(f"[dpo] reference log-probs of {len(used)} training and {len(data.heldout)} held-out pairs "
         f"precomputed in {time.time() - t0:.1f}s; no reference model is kept in memory")
     return ref_train, ref_heldout
 
 
 def refresh_pool(step: int, cfg: DPOConfig, policy, tokenizer, max_length: int, rows: list[dict], labeler,
-                 ref: Reference, metrics: loop.MetricsLog, say) -> Pool:
+                 ref: Reference, budget: int, metrics: loop.MetricsLog, say) -> Pool:
     """Online DPO (detail 8): a pool of fresh pairs from `policy` on sampled training `rows`, labelled by `labeler`."""
     gen = step // cfg.online_every
     idx = random.Random(f"online:{cfg.seed}:{gen}").sample(range(len(rows)), min(cfg.online_prompts, len(rows)))
@@ -263,7 +263,7 @@ def refresh_pool(step: int, cfg: DPOConfig, policy, tokenizer, max_length: int, 
     _, pairs, _ = preferences.check_pairs([{**r, "_row": i + 1} for i, r in enumerate(new_rows)],
                                           f"online pairs (step {step})", "skip", tokenizer, max_length)
     pair_ref = reference_logps(ref.model_for(policy), pairs, tokenizer.pad_token_id, cfg.micro_batch_size or
-                               cfg.batch_size, cfg.share_prompt) if cfg.reference == "precomputed" else None
+                               cfg.batch_size, cfg.share_prompt, budget) if cfg.reference == "precomputed" else None
     metrics.log(step, {"online/pairs": len(pairs), "online/prompts_all_tied": st["prompts_all_tied"]}, console=False)
     say(f"[dpo] step {step}: online pairs regenerated from the policy: {len(pairs)} pairs "
         f"({st['prompts_all_tied']} of {len(idx)} prompts tied), labelled by {cfg.online_labeler}")
@@ -273,14 +273,20 @@ def refresh_pool(step: int, cfg: DPOConfig, policy, tokenizer, max_length: int, 
     return Pool(pairs, pair_ref, step, gen)
 
 
+def micro_groups(cfg: DPOConfig, pool: Pool, idx: list[int], budget: int) -> list[list[int]]:
+    """Pool indices `idx` in micro-batches of at most micro_batch_size pairs and `budget` padded tokens."""
+    groups = pair_groups([pool.pairs[i] for i in idx], cfg.micro_batch_size or cfg.batch_size, budget, cfg.share_prompt)
+    return [[idx[j] for j in g] for g in groups]
+
+
 def evaluate(step: int, cfg: DPOConfig, task_name: str, model, policy, tokenizer, data: PairData, ref: Reference,
-             baseline: list[str], proxy, metrics: loop.MetricsLog, say) -> None:
+             baseline: list[str], proxy, budget: int, metrics: loop.MetricsLog, say) -> None:
     """Held-out pair metrics (every process); with the SFT `baseline` (main process), `evaluation.policy_eval`."""
     heldout, sums = Pool(data.heldout, ref.heldout), {}
     if heldout.pairs:
         model.eval()
     with torch.no_grad():
-        for idx in loop.chunks(list(range(len(heldout.pairs))), cfg.micro_batch_size or cfg.batch_size):
+        for idx in micro_groups(cfg, heldout, list(range(len(heldout.pairs))), budget):
             loss, m = micro_batch_loss(cfg, model, ref.live, heldout, idx, tokenizer.pad_token_id, len(idx))
             for k, v in {**m, "loss": float(loss)}.items():
                 sums[k] = sums.get(k, 0.0) + v * len(idx)
@@ -314,9 +320,10 @@ def train(res: Resolved, ensure) -> Path:
 
     # The SFT model: the reference (and the baseline completions), then, unchanged, the policy.
     model = models.maybe_lora(res, models.load_model(sft_dir, res.model.dtype, device=dev), say)  # LoRA: adapters 0
+    budget = models.token_budget(res.run.micro_batch_tokens, model)  # padded tokens per micro-batch (memory)
     ref = Reference(res, sft_dir, dev)
     if cfg.reference == "precomputed":
-        ref_train, ref.heldout = precompute_reference(cfg, model, data, pad_id, say)
+        ref_train, ref.heldout = precompute_reference(cfg, model, data, pad_id, budget, say)
     else:
         ref_train, ref.live = None, models.load_reference(res, model, sft_dir, dev)
     baseline = evaluation.complete(model, tokenizer, [r["prompt"] for r in data.gold_rows],
@@ -335,8 +342,9 @@ def train(res: Resolved, ensure) -> Path:
                                                                                                        ref_train)
     policy = accelerator.unwrap_model(model)  # the model inside the DDP / FSDP wrapper: generation, saving
     if start == 0 and cfg.eval_every:
-        evaluate(0, cfg, res.task.name, model, policy, tokenizer, data, ref, baseline, proxy, metrics, say)
-    say(f"[dpo] {len(data.train)} training pairs from {data.source}, batch {cfg.batch_size} (micro {micro}), "
+        evaluate(0, cfg, res.task.name, model, policy, tokenizer, data, ref, baseline, proxy, budget, metrics, say)
+    say(f"[dpo] {len(data.train)} training pairs from {data.source}, batch {cfg.batch_size} (micro {micro} pairs, "
+        f"<= {budget} tokens), "
         f"{cfg.max_steps} steps, {cfg.loss_type} loss, beta {cfg.beta}, lr {cfg.lr}, reference {cfg.reference}"
         + (f", online every {cfg.online_every} steps (labeler {cfg.online_labeler})" if cfg.online else ""))
     for step in range(start, cfg.max_steps):
@@ -346,14 +354,14 @@ def train(res: Resolved, ensure) -> Path:
             labeler = (preferences.gold_labeler(res.task.name) if cfg.online_labeler == "gold" else
                        preferences.scorer_labeler(proxy if proxy is not None else scoring.RewardModelScorer(rm_dir)))
             pool = refresh_pool(step, cfg, policy, tokenizer, res.model.max_length, data.online_rows, labeler, ref,
-                                metrics, say)
+                                budget, metrics, say)
         # ---- batch: this process's share of the step's pairs (indices into the pool), in micro-batches
         idx = loop.batch_indices(len(pool.pairs), cfg.batch_size, cfg.seed + pool.gen, step - pool.start,
                                  accelerator.process_index, accelerator.num_processes)[:per_process]
         # ---- update: one forward over chosen and rejected per micro-batch, accumulated into one optimizer step
         saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
         with loop.naming_checkpoint(ckpt):
-            m = loop.optimizer_step(accelerator, model, optimizer, scheduler, loop.chunks(idx, micro),
+            m = loop.optimizer_step(accelerator, model, optimizer, scheduler, micro_groups(cfg, pool, idx, budget),
                                     lambda mi: micro_batch_loss(cfg, model, ref.live, pool, mi, pad_id, len(idx)),
                                     cfg.max_grad_norm, done)
             if saving or (cfg.eval_every and done % cfg.eval_every == 0):
@@ -363,7 +371,7 @@ def train(res: Resolved, ensure) -> Path:
             metrics.log(done, {"loss": m["loss"], **m})  # the loss first on the console line
         # ---- eval
         if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps):
-            evaluate(done, cfg, res.task.name, model, policy, tokenizer, data, ref, baseline, proxy, metrics, say)
+            evaluate(done, cfg, res.task.name, model, policy, tokenizer, data, ref, baseline, proxy, budget, metrics, say)
         # ---- checkpoint (with an online pool, so that a resume trains on the same pairs)
         if saving:
             ckpt.save(done, model, optimizer, scheduler, {"step": done},

@@ -261,11 +261,12 @@ class StepBatch:
 
 
 # ----------------------------------------------------------------------------- advantages and update
-def loss_rows(cfg: GRPOConfig, sb: StepBatch, accelerator, pad_id: int, old_model,
-              ref_model) -> dict[str, torch.Tensor] | None:
+def loss_rows(cfg: GRPOConfig, sb: StepBatch, accelerator, pad_id: int, old_model, ref_model,
+              budget: int = 0) -> dict[str, torch.Tensor] | None:
     """The rows of the loss: the kept groups' tokens, loss mask and group advantages, pi_old (the engine's, or
     recomputed by `old_model`) and the reference log-probs (beta > 0); None when no group is kept. The no-grad
-    log-probs are computed in shards and gathered: every process holds every row."""
+    log-probs are computed in shards (micro-batches of at most `budget` padded tokens) and gathered: every
+    process holds every row."""
     from posttrain.rollout import collate_rollouts
 
     K = cfg.group_size
@@ -289,9 +290,9 @@ def loss_rows(cfg: GRPOConfig, sb: StepBatch, accelerator, pad_id: int, old_mode
             "old_logps": batch.policy_logprobs if cfg.temperature == 1.0 else batch.logprobs}
     micro = cfg.micro_batch_size or len(rows_idx)
     if old_model is not None:
-        rows["old_logps"] = sharding.sharded_logprobs(accelerator, old_model, batch, micro, cfg.temperature)
+        rows["old_logps"] = sharding.sharded_logprobs(accelerator, old_model, batch, micro, cfg.temperature, budget)
     if ref_model is not None:
-        rows["ref_logps"] = sharding.sharded_logprobs(accelerator, ref_model, batch, micro, cfg.temperature)
+        rows["ref_logps"] = sharding.sharded_logprobs(accelerator, ref_model, batch, micro, cfg.temperature, budget)
     return rows
 
 
@@ -329,7 +330,7 @@ def micro_batch_loss(cfg: GRPOConfig, model, world: int, with_entropy: bool,
 
 
 def update(cfg: GRPOConfig, accelerator, model, optimizer, scheduler, rows: dict[str, torch.Tensor] | None,
-           step: int) -> dict[str, float]:
+           step: int, budget: int = 0) -> dict[str, float]:
     """mu passes x minibatches optimizer updates over `rows`; the update metrics.
 
     Every process holds the same rows, so the row order of each pass (seeded by step and pass) and the
@@ -343,7 +344,7 @@ def update(cfg: GRPOConfig, accelerator, model, optimizer, scheduler, rows: dict
         order = usable[torch.randperm(len(usable), generator=gen)]
         for mb_idx in torch.tensor_split(order, min(cfg.minibatches, len(usable))):
             mbs = sharding.micro_batches(rows, mb_idx.to(accelerator.device), cfg.micro_batch_size, cfg.aggregation,
-                                         accelerator.process_index, accelerator.num_processes)
+                                         accelerator.process_index, accelerator.num_processes, budget)
             loss_fn = functools.partial(micro_batch_loss, cfg, model, accelerator.num_processes, epoch == 0)
             out = loop.optimizer_step(accelerator, model, optimizer, scheduler, mbs, loss_fn, cfg.max_grad_norm,
                                       step + 1, weights=[tokens for _, _, tokens in mbs])
@@ -357,7 +358,7 @@ def update(cfg: GRPOConfig, accelerator, model, optimizer, scheduler, rows: dict
 
 # ----------------------------------------------------------------------------- log
 def describe_run(cfg: GRPOConfig, reward: Reward, n_problems: int, rm_dir: Path | None, recompute_old: bool,
-                 world: int, device) -> str:
+                 world: int, device, budget: int = 0) -> str:
     from posttrain.rollout import default_backend
 
     desc = " + ".join(x for x in (
@@ -368,7 +369,8 @@ def describe_run(cfg: GRPOConfig, reward: Reward, n_problems: int, rm_dir: Path 
             f"step, {cfg.max_steps} steps ({cfg.mu} pass(es) x {cfg.minibatches} update(s) each); reward: {desc}; "
             f"{cfg.estimator} advantages ({cfg.std_scale} std), {cfg.aggregation}, beta {cfg.beta}, zero-variance "
             f"groups: {cfg.zero_variance}; rollouts: {default_backend()} backend"
-            + (" (pi_old recomputed)" if recompute_old else "") + f"; {world} process(es) on {device}")
+            + (" (pi_old recomputed)" if recompute_old else "") + f"; {world} process(es) on {device}"
+            + (f"; micro-batches <= {budget} tokens" if budget else ""))
 
 
 def _row_metrics(sb: StepBatch, K: int, verifier_parts: set[str]) -> dict[str, float]:
@@ -461,7 +463,7 @@ def save_scored_rollouts(sb: StepBatch, path: Path) -> None:
 # ----------------------------------------------------------------------------- train
 def train(res: Resolved, ensure) -> Path:
     """GRPO on the recipe's task from the SFT model; returns the final model directory."""
-    from posttrain.models import load_model, load_reference, load_tokenizer, maybe_lora, save_model
+    from posttrain.models import load_model, load_reference, load_tokenizer, maybe_lora, save_model, token_budget
     from posttrain.rollout import SamplingParams, default_backend, generate
     from verifiers.runner import VerifierPool
 
@@ -482,6 +484,7 @@ def train(res: Resolved, ensure) -> Path:
         rank, world = accelerator.process_index, accelerator.num_processes
         tokenizer = load_tokenizer(sft_dir, res.model)
         model = maybe_lora(res, load_model(sft_dir, res.model.dtype, device=device), say)  # LoRA: adapters start at 0
+        budget = token_budget(res.run.micro_batch_tokens, model)  # padded tokens per micro-batch (memory)
         # beta = 0: no reference model at all; LoRA: the policy with its adapters off (no copy of the weights)
         ref_model = load_reference(res, model, sft_dir, device) if cfg.beta > 0 else None
         problems = tokenize_problems(tokenizer, problems, "training", cfg.max_new_tokens, res.model.max_length, say)
@@ -507,7 +510,7 @@ def train(res: Resolved, ensure) -> Path:
         start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say,
                                 tag="grpo")["step"]
         baseline = held.sft_baseline(policy, tokenizer, run_dir / "sft_eval.json", start, metrics, say) if main else {}
-        say(describe_run(cfg, reward, len(problems), rm_dir, recompute_old, world, device))
+        say(describe_run(cfg, reward, len(problems), rm_dir, recompute_old, world, device, budget))
         rounds = 1 + (cfg.max_resample_rounds if cfg.zero_variance == "resample" else 0)
         timing: dict[str, float] = collections.defaultdict(float)
         t_start = time.time()
@@ -543,9 +546,9 @@ def train(res: Resolved, ensure) -> Path:
                 # ---- advantages of the kept groups; pi_old (when recomputed) and reference log-probs, no grad
                 t0 = time.time()
                 rows = loss_rows(cfg, sb, accelerator, tokenizer.pad_token_id, policy if recompute_old else None,
-                                 ref_model)
+                                 ref_model, budget)
                 # ---- update: mu passes x minibatches of clipped-ratio steps
-                m.update(update(cfg, accelerator, model, optimizer, scheduler, rows, step))
+                m.update(update(cfg, accelerator, model, optimizer, scheduler, rows, step, budget))
                 timing["train"] = time.time() - t0
                 if saving or evaluating:
                     loop.check_weights(done, model)

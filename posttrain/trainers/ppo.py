@@ -39,8 +39,8 @@ as the reward model was trained, while the value model reads the sampled ids. A 
 stops the run naming the iteration; the last good checkpoint stays. In memory: policy, value, frozen reference, RM.
 
 Several processes follow posttrain/sharding.py: `rollout_batch_size` and `minibatch_size` are global (minibatch_size
-a multiple of the processes), everything computed from the gathered batch is global, `global_token_mean` gives DDP
-the whole minibatch's gradient; the main process evaluates and writes metrics.jsonl, final/ and eval.json.
+a multiple of the processes), everything computed from the gathered batch is global, `sharding.token_share` gives
+DDP the whole minibatch's gradient (also when `run.micro_batch_tokens` splits a minibatch into micro-batches); the main process evaluates and writes metrics.jsonl, final/ and eval.json.
 
 LoRA (`models.maybe_lora`): policy and value model (SEQ_CLS: its head trains fully) get adapters; the reference is
 the policy with them off (`models.reference_view`): 3 sets of base weights. final/ is saved merged. See RESULTS.md.
@@ -59,6 +59,7 @@ import torch
 from posttrain import evaluation, loop, models, sharding, tasks
 from posttrain.advantages import AdaptiveKLController, FixedKLController, gae, rewards_with_kl
 from posttrain.config import ConfigError, Resolved
+from posttrain.data import row_spans, token_groups
 from posttrain.lean import train as lean
 from posttrain.lean.support import lean_support
 from posttrain.logprobs import masked_mean, masked_sum, masked_whiten, sequence_logprobs
@@ -382,14 +383,24 @@ def measure_reward_norm(accelerator, m: PPOModels, cfg: PPOConfig, train_rows: l
 
 
 @torch.no_grad()
-def rollout_values(accelerator, value, batch, micro: int) -> torch.Tensor:
+def rollout_values(accelerator, value, batch, micro: int, budget: int = 0) -> torch.Tensor:
     """The value model's per-token values (B, T) of every row at rollout time, 0 outside the completion: each process
-    its rows r, r + W, ... in micro-batches, gathered (as `sharding.sharded_logprobs`)."""
+    its rows r, r + W, ... in micro-batches (at most `micro` rows and `budget` padded tokens), gathered (as
+    `sharding.sharded_logprobs`)."""
     where = sharding.positions(batch.input_ids.shape[0], accelerator.process_index, accelerator.num_processes)
     vm, ids, am = accelerator.unwrap_model(value).eval(), batch.input_ids[where], batch.attention_mask[where]
-    local = torch.cat([vm(ids[s], am[s]) for s in loop.chunks(list(range(len(where))), micro)])  # (B/W, T)
+    local = torch.cat([vm(ids[g], am[g]) for g in token_groups(row_spans(am), micro, budget)])  # (B/W, T)
     values = sharding.gather_row_tensor(accelerator, local, where)  # (B, T)
     return torch.where(batch.completion_mask.bool(), values, torch.zeros_like(values))
+
+
+def minibatch_parts(data: dict, whole: torch.Tensor, accelerator, budget: int) -> list[dict]:
+    """This process's rows r, r + W, ... of the minibatch `whole`, in micro-batches of at most `budget` padded
+    tokens, all-padding columns trimmed."""
+    mine = whole[accelerator.process_index::accelerator.num_processes]
+    groups = token_groups(row_spans(data["attention_mask"][mine]), 0, budget)
+    return [sharding.trim_columns({k: v[mine[torch.as_tensor(g, device=mine.device)]] for k, v in data.items()})
+            for g in groups]
 
 
 def policy_update_loss(accelerator, policy, cfg: PPOConfig, mb: dict, n_local: float, n_global: float):
@@ -397,7 +408,7 @@ def policy_update_loss(accelerator, policy, cfg: PPOConfig, mb: dict, n_local: f
     logps, ent = sequence_logprobs(policy, mb["input_ids"], mb["attention_mask"], mb["completion_mask"],
                                    temperature=logprob_temperature(cfg), return_entropy=True)  # (b, T), (b, T)
     loss, m = policy_loss(cfg, logps, ent, mb["old_logps"], mb["advantages"], mb["completion_mask"])
-    return sharding.global_token_mean(accelerator, loss, m, n_local, n_global)
+    return sharding.token_share(accelerator, loss, n_local, n_global), m
 
 
 def value_update_loss(accelerator, value, cfg: PPOConfig, mb: dict, n_local: float, n_global: float):
@@ -406,7 +417,7 @@ def value_update_loss(accelerator, value, cfg: PPOConfig, mb: dict, n_local: flo
     loss, m = critic_loss(cfg, v, mb["old_values"], mb["returns"], mb["completion_mask"])
     if accelerator.num_processes > 1:
         m["explained_variance"] = sharding.global_explained_variance(accelerator, v, mb["returns"], mb["completion_mask"])
-    return sharding.global_token_mean(accelerator, loss, m, n_local, n_global)
+    return sharding.token_share(accelerator, loss, n_local, n_global), m
 
 
 def evaluate(it: int, task_name: str, accelerator, m: PPOModels, rows: list[dict], baseline: list[str],
@@ -431,6 +442,7 @@ def train(res: Resolved, ensure) -> Path:
     world, main, dev = accelerator.num_processes, accelerator.is_main_process, accelerator.device
     run_dir, temp_lp = res.stage_dir(), logprob_temperature(cfg)
     m = build_models(res, cfg, sft_dir, rm_dir, dev, say, main)
+    budget = models.token_budget(res.run.micro_batch_tokens, m.policy)  # padded tokens per micro-batch (memory)
     held_out = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)] if main else []
     baseline = evaluation.complete(m.policy, m.tokenizer, [r["prompt"] for r in held_out],
                                    max_new_tokens=cfg.max_new_tokens) if held_out else []  # the SFT model's
@@ -475,9 +487,10 @@ def train(res: Resolved, ensure) -> Path:
 
         # ---- log-probs (old policy, reference) and values at rollout time: no grad, each process its rows, gathered
         pol = accelerator.unwrap_model(m.policy).eval()
-        old_logps = sharding.sharded_logprobs(accelerator, pol, batch, cfg.minibatch_size, temp_lp)  # (B, T)
-        ref_logps = sharding.sharded_logprobs(accelerator, m.reference, batch, cfg.minibatch_size, temp_lp)  # (B, T)
-        old_values = rollout_values(accelerator, m.value, batch, cfg.minibatch_size)  # (B, T)
+        old_logps = sharding.sharded_logprobs(accelerator, pol, batch, cfg.minibatch_size, temp_lp, budget)  # (B, T)
+        ref_logps = sharding.sharded_logprobs(accelerator, m.reference, batch, cfg.minibatch_size, temp_lp,
+                                              budget)  # (B, T)
+        old_values = rollout_values(accelerator, m.value, batch, cfg.minibatch_size, budget)  # (B, T)
         engine_lp = batch.logprobs if cfg.scale_logits_by_temperature else batch.policy_logprobs  # (B, T)
         lp_gap = float((old_logps - engine_lp).abs().masked_fill(~cm, 0).max())
 
@@ -486,7 +499,8 @@ def train(res: Resolved, ensure) -> Path:
         adv = advantages_and_returns(cfg, scores.to(dev), old_logps, ref_logps, old_values, cm, kl_ctl.value)
 
         # ---- ppo_epochs x minibatches of policy and value updates (of each minibatch, process r takes
-        # rows r, r + W, ...; losses scaled to the minibatch's global token mean, see sharding.global_token_mean)
+        # rows r, r + W, ..., in micro-batches of at most `budget` tokens; losses scaled to their share of the
+        # minibatch's global token mean, see sharding.token_share)
         data = dict(input_ids=batch.input_ids, attention_mask=batch.attention_mask, completion_mask=cm,  # (B, T) each
                     old_logps=old_logps, old_values=old_values, advantages=adv["advantages"], returns=adv["returns"])
         sums: dict[str, float] = {}
@@ -495,12 +509,14 @@ def train(res: Resolved, ensure) -> Path:
                 perm = np.random.default_rng([cfg.seed, it, epoch]).permutation(cfg.rollout_batch_size)
                 for j in range(n_mb):
                     whole = torch.as_tensor(perm[j * cfg.minibatch_size:(j + 1) * cfg.minibatch_size], device=dev)
-                    mb = sharding.trim_columns({k: v[whole[accelerator.process_index::world]] for k, v in data.items()})
-                    n = (float(mb["completion_mask"].sum()), float(cm[whole].sum()))  # tokens: this process's, all
-                    mp = loop.optimizer_step(accelerator, m.policy, opt_p, sched_p, [mb], lambda b: policy_update_loss(
-                        accelerator, m.policy, cfg, b, *n), cfg.max_grad_norm, done)
-                    mv = loop.optimizer_step(accelerator, m.value, opt_v, sched_v, [mb], lambda b: value_update_loss(
-                        accelerator, m.value, cfg, b, *n), cfg.max_grad_norm, done)
+                    mbs, n_all = minibatch_parts(data, whole, accelerator, budget), float(cm[whole].sum())
+                    w = [float(b["completion_mask"].sum()) / n_all for b in mbs]  # shares of the minibatch's tokens
+                    mp = loop.optimizer_step(accelerator, m.policy, opt_p, sched_p, mbs, lambda b: policy_update_loss(
+                        accelerator, m.policy, cfg, b, float(b["completion_mask"].sum()), n_all), cfg.max_grad_norm,
+                        done, weights=w)
+                    mv = loop.optimizer_step(accelerator, m.value, opt_v, sched_v, mbs, lambda b: value_update_loss(
+                        accelerator, m.value, cfg, b, float(b["completion_mask"].sum()), n_all), cfg.max_grad_norm,
+                        done, weights=w)
                     got = {"policy/" + k: v for k, v in mp.items()} | {"value/" + k: v for k, v in mv.items()}
                     sums = {k: sums.get(k, 0.0) + v for k, v in got.items()}
             saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps

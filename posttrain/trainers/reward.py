@@ -36,7 +36,7 @@ import torch
 from posttrain import loop
 from posttrain.config import Resolved
 from posttrain.losses import bradley_terry_loss
-from posttrain.preferences import TokenizedPair
+from posttrain.preferences import TokenizedPair, pair_groups
 from posttrain.scoring import pair_rewards, rm_appends_eos
 
 
@@ -83,13 +83,13 @@ class RMConfig:
 
 
 @torch.no_grad()
-def heldout_metrics(model, pairs: list[TokenizedPair], pad_id: int, micro: int) -> dict[str, float]:
+def heldout_metrics(model, pairs: list[TokenizedPair], pad_id: int, micro: int, max_tokens: int = 0) -> dict[str, float]:
     """Bradley-Terry loss, pair accuracy and margin over held-out pairs."""
     if not pairs:
         return {}
     model.eval()
     sums: dict[str, float] = {}
-    for chunk in loop.chunks(pairs, micro):
+    for chunk in ([pairs[i] for i in g] for g in pair_groups(pairs, micro, max_tokens)):
         r = pair_rewards(model, chunk, pad_id)
         loss, m = bradley_terry_loss(r[: len(chunk)], r[len(chunk):])
         m["loss"] = float(loss)
@@ -102,7 +102,7 @@ def heldout_metrics(model, pairs: list[TokenizedPair], pad_id: int, micro: int) 
 def train(res: Resolved, ensure) -> Path:
     """Train a reward model on preference pairs; returns the final HF directory."""
     from posttrain import preferences
-    from posttrain.models import load_reward_init, load_tokenizer, maybe_lora, save_model
+    from posttrain.models import load_reward_init, load_tokenizer, maybe_lora, save_model, token_budget
 
     cfg: RMConfig = res.stage_cfg
     run_dir = res.stage_dir()
@@ -135,6 +135,7 @@ def train(res: Resolved, ensure) -> Path:
     model = maybe_lora(res, load_reward_init(sft_dir, pad_id, cfg.seed, accelerator.device, res.model.dtype), say,
                        "SEQ_CLS")
     micro = cfg.micro_batch_size or cfg.batch_size
+    budget = token_budget(res.run.micro_batch_tokens, model)  # padded tokens per micro-batch (memory)
     per_process = max(1, cfg.batch_size // accelerator.num_processes)
     optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
     scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
@@ -145,13 +146,14 @@ def train(res: Resolved, ensure) -> Path:
     start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="rm")["step"]
 
     say(f"[rm] {len(train_pairs)} training pairs from {source}, {len(eval_pairs)} held-out, batch {cfg.batch_size} "
-        f"(micro {micro}), {cfg.max_steps} steps, lr {cfg.lr}")
+        f"(micro {micro} pairs, <= {budget} tokens), {cfg.max_steps} steps, lr {cfg.lr}")
     t0 = time.time()
     for step in range(start, cfg.max_steps):
         done = step + 1
         idx = loop.batch_indices(len(train_pairs), cfg.batch_size, cfg.seed, step,
                                  accelerator.process_index, accelerator.num_processes)[:per_process]
-        micro_batches = [[train_pairs[i] for i in mi] for mi in loop.chunks(idx, micro)]
+        batch = [train_pairs[i] for i in idx]
+        micro_batches = [[batch[i] for i in g] for g in pair_groups(batch, micro, budget)]
 
         def loss_fn(chunk):
             r = pair_rewards(model, chunk, pad_id)  # (2b,)
@@ -167,7 +169,7 @@ def train(res: Resolved, ensure) -> Path:
         if done % cfg.log_every == 0 or done == cfg.max_steps:
             metrics.log(done, m)
         if done == cfg.max_steps or (cfg.eval_every and done % cfg.eval_every == 0):
-            ev = heldout_metrics(model, eval_pairs, pad_id, micro)
+            ev = heldout_metrics(model, eval_pairs, pad_id, micro, budget)
             metrics.log(done, ev, console=False)
             if ev:
                 say(f"[rm] step {done}: held-out pair accuracy {ev['eval/accuracy']:.3f}, margin {ev['eval/margin']:.3f}")
@@ -177,7 +179,7 @@ def train(res: Resolved, ensure) -> Path:
     final = run_dir / "final"
     if main:
         save_model(accelerator.unwrap_model(model), tokenizer, final)
-        ev = heldout_metrics(model, eval_pairs, pad_id, micro) if start == cfg.max_steps else ev  # resumed at the end
+        ev = heldout_metrics(model, eval_pairs, pad_id, micro, budget) if start == cfg.max_steps else ev  # resumed at the end
         loop.write_json(run_dir / "eval.json", {"model": str(final), "heldout": ev, "train_pairs": len(train_pairs),
                                                "seconds": round(time.time() - t0, 1)})
         say(f"[rm] saved {final}" + (f" (held-out pair accuracy {ev['eval/accuracy']:.3f} on {len(eval_pairs)} pairs)"

@@ -84,11 +84,18 @@ class SFTConfig:
     """Continue from the newest checkpoint in the run directory."""
 
 
+def micro_groups(pairs, micro_batch_size: int, max_tokens: int) -> list[list]:
+    """(prompt, completion) token pairs in micro-batches of at most `micro_batch_size` rows and `max_tokens`
+    padded tokens (`loop.token_groups`)."""
+    groups = loop.token_groups([(0, len(p) + len(c)) for p, c in pairs], micro_batch_size, max_tokens)
+    return [[pairs[i] for i in g] for g in groups]
+
+
 @torch.no_grad()
-def eval_loss(model, pairs, pad_id: int, micro_batch_size: int) -> float:
+def eval_loss(model, pairs, pad_id: int, micro_batch_size: int, max_tokens: int = 0) -> float:
     model.eval()
     total, count = 0.0, 0
-    for chunk in loop.chunks(pairs, micro_batch_size):
+    for chunk in micro_groups(pairs, micro_batch_size, max_tokens):
         s, n = nll_sum(model, collate_completions(chunk, pad_id))
         total += float(s)
         count += n
@@ -100,7 +107,7 @@ def train(res: Resolved, ensure) -> Path:
     """Fine-tune the base model (`ensure("base")`: a preset built from scratch or a local HF dir)
     on the task; returns the final model directory."""
     from posttrain import evaluation, tasks
-    from posttrain.models import load_model, load_tokenizer, maybe_lora, save_model
+    from posttrain.models import load_model, load_tokenizer, maybe_lora, save_model, token_budget
 
     cfg: SFTConfig = res.stage_cfg
     run_dir = res.stage_dir()
@@ -121,6 +128,7 @@ def train(res: Resolved, ensure) -> Path:
         raise loop.TrainingError(f"only {len(train_pairs)} usable training rows, fewer than batch_size={cfg.batch_size}")
 
     micro = cfg.micro_batch_size or cfg.batch_size
+    budget = token_budget(res.run.micro_batch_tokens, model)  # padded tokens per micro-batch (memory)
     per_process = max(1, cfg.batch_size // accelerator.num_processes)
     optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
     scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
@@ -131,14 +139,15 @@ def train(res: Resolved, ensure) -> Path:
 
     start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="sft")["step"]
 
-    say(f"[sft] {len(train_pairs)} training rows, batch {cfg.batch_size} (micro {micro}), {cfg.max_steps} steps, "
+    say(f"[sft] {len(train_pairs)} training rows, batch {cfg.batch_size} (micro {micro} rows, <= {budget} "
+        f"tokens), {cfg.max_steps} steps, "
         f"lr {cfg.lr}, {accelerator.num_processes} process(es) on {accelerator.device}")
     tokens_seen, t_last = 0, time.time()
     for step in range(start, cfg.max_steps):
         idx = loop.batch_indices(len(train_pairs), cfg.batch_size, cfg.seed, step,
                                  accelerator.process_index, accelerator.num_processes)[:per_process]
         batch_pairs = [train_pairs[i] for i in idx]
-        micro_batches = [collate_completions(c, tokenizer.pad_token_id) for c in loop.chunks(batch_pairs, micro)]
+        micro_batches = [collate_completions(c, tokenizer.pad_token_id) for c in micro_groups(batch_pairs, micro, budget)]
         n_tokens = sum(float(token_weights(mb, cfg.prompt_loss_weight).sum()) for mb in micro_batches)
         # Token mean over the GLOBAL batch: DDP averages gradients over processes, so each process
         # divides its token-loss sum by the global token count times the number of processes.
@@ -158,7 +167,7 @@ def train(res: Resolved, ensure) -> Path:
                                "tokens_per_s": tokens_seen / max(dt, 1e-9)})
             tokens_seen, t_last = 0, time.time()
         if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps):
-            el = eval_loss(model, eval_pairs, tokenizer.pad_token_id, micro)
+            el = eval_loss(model, eval_pairs, tokenizer.pad_token_id, micro, budget)
             metrics.log(done, {"eval_loss": el}, console=False)
             say(f"[sft] step {done}: eval loss {el:.4f}")
             if cfg.num_samples and accelerator.is_main_process:

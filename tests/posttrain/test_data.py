@@ -243,3 +243,47 @@ def test_clean_preference_rows_always_stops_on_empty():
     bad = PAIRS[:1] + [{"prompt": "p", "chosen": " a", "rejected": ""}]
     with pytest.raises(DataError, match=r"row 2: field 'rejected': empty text"):
         clean_preference_rows(bad, "skip")
+
+
+# ----------------------------------------------------------------------------- micro-batches by tokens
+def test_token_groups_bound_rows_and_padded_tokens():
+    from posttrain.data import token_groups
+
+    spans = [(0, 4), (0, 4), (0, 10), (0, 2), (0, 2), (0, 2)]
+    assert token_groups(spans) == [[0, 1, 2, 3, 4, 5]]  # no limits: one group
+    assert token_groups(spans, max_rows=4) == [[0, 1, 2, 3], [4, 5]]
+    # 3 rows of width 10 = 30 > 24: the third item starts a group; 2+2+2 after it fit under 10-wide padding?
+    assert token_groups(spans, max_tokens=24) == [[0, 1], [2, 3], [4, 5]]  # (2 x 4), (2 x 10), (2 x 2)
+    assert token_groups([(0, 50), (0, 3)], max_tokens=20) == [[0], [1]]  # wider than the budget: alone
+    assert token_groups([(5, 9), (0, 9), (7, 9)], max_tokens=27) == [[0, 1, 2]]  # width = max end - min start
+    assert token_groups([(0, 6)] * 4, max_tokens=24, rows_per_item=2) == [[0, 1], [2, 3]]  # pairs: 2 rows each
+    assert token_groups([]) == []
+
+
+def test_row_spans_of_a_padded_batch():
+    import torch
+
+    from posttrain.data import row_spans
+
+    am = torch.tensor([[0, 0, 1, 1, 1], [1, 1, 1, 0, 0], [0, 0, 0, 0, 0], [1, 1, 1, 1, 1]])
+    assert row_spans(am) == [(2, 5), (0, 3), (0, 0), (0, 5)]
+
+
+def test_token_budget_is_the_setting_or_two_gib_of_activations():
+    from transformers import LlamaConfig
+
+    from posttrain.models import PRESETS, activation_bytes_per_token, token_budget
+
+    class M:
+        def __init__(self, **kw):
+            self.config = LlamaConfig(**kw)
+
+    tiny = M(vocab_size=1024, **PRESETS["tiny"])
+    assert token_budget(500, tiny) == 500
+    # the tiny preset: every shipped recipe's micro-batch (e.g. GRPO's 64 rows x ~300 tokens) fits, so
+    # their numbers do not change; a 135M model with a 49k vocabulary: ~1.1k tokens
+    assert token_budget(0, tiny) >= 64 * 300
+    smol = M(vocab_size=49152, hidden_size=576, intermediate_size=1536, num_hidden_layers=30,
+             num_attention_heads=9, num_key_value_heads=3)
+    assert 900 <= token_budget(0, smol) <= 1400
+    assert activation_bytes_per_token(smol.config) * token_budget(0, smol) <= 2 * 2**30

@@ -74,6 +74,9 @@ def test_nonfinite_loss_on_another_process_stops_this_one_before_backward():
         def reduce(self, t, reduction="sum"):  # the other process reports a non-finite loss
             return t + 1.0
 
+        def gather(self, t):  # both processes bring one micro-batch
+            return torch.cat([t, t])
+
         def backward(self, loss):
             raise AssertionError("backward must not start when any process's loss is non-finite")
 
@@ -81,6 +84,43 @@ def test_nonfinite_loss_on_another_process_stops_this_one_before_backward():
     finite = lambda mb: (model(torch.ones(1, 3)).sum(), {})
     with pytest.raises(loop.TrainingError, match="non-finite loss on 1 other process.* at step 5"):
         loop.optimizer_step(TwoProcesses(), model, opt, sch, [0], finite, 1.0, 5)
+
+
+def test_a_process_with_fewer_micro_batches_runs_zero_loss_copies_to_keep_in_step():
+    """Token budgets may give processes different numbers of micro-batches: each runs as many as the most any
+    process has (here the other has 3), the extra ones copies of its last with loss x 0, so its gradient, loss
+    and metrics are those of its own micro-batches, and every collective of the step lines up."""
+    calls = {"reduce": 0, "backward": 0}
+
+    class OtherHasThree(_Acc):
+        num_processes = 2
+        device = torch.device("cpu")
+
+        def no_sync(self, model):
+            import contextlib
+            return contextlib.nullcontext()
+
+        def gather(self, t):
+            return torch.cat([t, torch.tensor([3] * t.shape[0]).view_as(t)]) if t.dim() == 1 else torch.cat([t, t])
+
+        def reduce(self, t, reduction="sum"):
+            calls["reduce"] += 1
+            return t * (2 if reduction == "sum" else 1)
+
+        def backward(self, loss):
+            calls["backward"] += 1
+            loss.backward()
+
+    x, y = torch.randn(4, 3), torch.randn(4, 1)
+    loss_fn = lambda model: (lambda mb: (((model(x[mb]) - y[mb]) ** 2).sum() / 4, {"seen": float(len(mb))}))
+    model, opt, sch = _toy()
+    out = loop.optimizer_step(OtherHasThree(), model, opt, sch, [[0, 1, 2, 3]], loss_fn(model), 0.0, 1)
+    assert calls["backward"] == 3  # one real micro-batch and two copies: the other process's count
+    assert out["seen"] == 4.0  # the copies add no metric (averaged over processes: both saw 4 here)
+    alone, opt_a, sch_a = _toy()
+    loop.optimizer_step(_Acc(), alone, opt_a, sch_a, [[0, 1, 2, 3]], loss_fn(alone), 0.0, 1)
+    for a, b in zip(model.parameters(), alone.parameters()):
+        torch.testing.assert_close(a, b)  # the copies added no gradient
 
 
 def test_accumulation_equals_one_big_batch():

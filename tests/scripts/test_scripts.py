@@ -7,6 +7,7 @@ trainer's internals can change without the benchmark measuring something else.
 from __future__ import annotations
 
 import ast
+import json
 import importlib.util
 import subprocess
 import sys
@@ -87,3 +88,14 @@ def test_test_margins_summarizes_each_check_by_its_worst_run():
     assert (rise["runs"], rise["failed"]) == (3, 1)
     assert rows["no eos"]["best"] == 0.2 and rows["no eos"]["failed"] == 0
     assert "| test_x | reward rise | > 0.1 | 0.05 |" in margins.table(list(rows.values()))
+
+
+@pytest.mark.slow
+def test_gpu_check_dry_mode_runs_every_row_on_cpu(tmp_path, capsys):
+    """scripts/gpu_check.py --dry: the GPU check's code on the tiny preset in fp32 (FSDP needs CUDA: skipped)."""
+    check = _load(SCRIPTS / "gpu_check.py")
+    assert check.main(["--dry", "--json", str(tmp_path / "check.json")]) == 0, capsys.readouterr().out
+    rows = json.loads((tmp_path / "check.json").read_text())["rows"]
+    assert [k for k, r in rows.items() if r["status"] != "ok"] == ["sft step (FSDP2, 1 process)"]
+    assert rows["engine vs generate"]["greedy agreement"] == "16/16 rows"
+    assert "| grpo step (float32) | ok |" in capsys.readouterr().out

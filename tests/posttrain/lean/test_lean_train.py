@@ -146,8 +146,8 @@ def test_sequence_logprobs_switch_on_equals_off(name, temperature, entropy, monk
     model = MODELS[name]()
     ids, am, cm = _batch("both")
     calls = []
-    real_forward = lean_train.lean_forward
-    monkeypatch.setattr(lean_train, "lean_forward", lambda *a, **k: calls.append(1) or real_forward(*a, **k))
+    real_forward = lean_train.lean_last_layer
+    monkeypatch.setattr(lean_train, "lean_last_layer", lambda *a, **k: calls.append(1) or real_forward(*a, **k))
     kw = dict(temperature=temperature, return_entropy=entropy, entropy_grad=False)
     lp0, e0, g0 = _run(model, ids, am, cm, False, **kw)
     assert not calls
@@ -336,12 +336,12 @@ def test_shared_prefix_forward_equals_unshared(name):
         torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
 
     calls = []
-    real = lean_train.lean_forward_shared
+    real = lean_train.lean_hidden_shared
     try:
-        lean_train.lean_forward_shared = lambda *a, **k: calls.append(1) or real(*a, **k)
+        lean_train.lean_hidden_shared = lambda *a, **k: calls.append(1) or real(*a, **k)
         lp1, _ = sequence_logprobs(model, ids, am, cm)
     finally:
-        lean_train.lean_forward_shared = real
+        lean_train.lean_hidden_shared = real
     assert calls, "sequence_logprobs did not share the prompts"
     before = support.ENABLED
     support.ENABLED = False
@@ -519,3 +519,57 @@ def test_autocast_falls_back_to_the_model_forward():
     with torch.no_grad():
         lp_mp, _ = sequence_logprobs(prepared, ids, am, cm)
     assert lp_mp.dtype == torch.float32 and 0 < float((lp_mp - lp32).abs().max()) < 0.5  # bf16 compute happened
+
+
+# ----------------------------------------------------------------------------- the chunked head (real vocabularies)
+@pytest.mark.parametrize("name", ["llama-mha-tied", "qwen2-gqa-bias", "llama-biases"])
+@pytest.mark.parametrize("temperature,entropy_grad", [(1.0, False), (0.7, True)])
+def test_chunked_head_gives_the_fused_heads_numbers_and_gradients(name, temperature, entropy_grad):
+    """lean_token_logprobs in row chunks (never all logits at once) = the one-pass fused head: log-probs,
+    entropies and every parameter's gradient (tied embeddings, a head bias, a temperature, entropy_grad)."""
+    model = MODELS[name]()
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(3, 7, model.config.hidden_size, generator=g, requires_grad=True)
+    targets = torch.randint(0, V, (3, 7), generator=g)
+    wl, we = torch.randn(3, 7, generator=g), torch.randn(3, 7, generator=g)
+
+    def run(chunk_elements):
+        model.zero_grad(set_to_none=True)
+        x.grad = None
+        lp, ent = lean_train.lean_token_logprobs(model, x, targets, temperature, True, entropy_grad,
+                                                 chunk_elements=chunk_elements)
+        ((lp * wl).sum() + ((ent * we).sum() if entropy_grad else 0)).backward()
+        grads = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+        return lp.detach(), ent.detach(), x.grad.clone(), grads
+
+    lp0, ent0, gx0, g0 = run(1 << 30)  # one fused pass
+    lp1, ent1, gx1, g1 = run(4 * V)  # 4 rows per chunk: 6 chunks, the last one short
+    torch.testing.assert_close(lp1, lp0, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(ent1, ent0, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(gx1, gx0, atol=1e-5, rtol=1e-4)
+    assert g1.keys() == g0.keys()
+    for n in g0:
+        torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
+
+
+def test_the_chunked_head_never_keeps_logits_for_the_backward(monkeypatch):
+    """What autograd saves for the backward of a chunked call holds no (N, V) tensor (the fused path saves the
+    (N, V) softmax), and sequence_logprobs takes the chunked path when the logits pass the threshold."""
+    big = 4096  # a vocabulary much wider than the model, as real ones are (49k vs d=576)
+    model = _llama(vocab_size=big, hidden_size=32, intermediate_size=48, tie_word_embeddings=False)
+    ids = torch.randint(3, big, (4, 12), generator=torch.Generator().manual_seed(1))
+    am = torch.ones_like(ids)
+    N = 4 * 11
+
+    def saved_sizes(chunk_elements):
+        monkeypatch.setattr(lean_train, "HEAD_CHUNK_ELEMENTS", chunk_elements)
+        sizes = []
+        with torch.autograd.graph.saved_tensors_hooks(lambda t: sizes.append(t.numel()) or t, lambda t: t):
+            lp, _ = sequence_logprobs(model, ids, am)
+        return lp, sizes
+
+    lp_fused, fused = saved_sizes(1 << 30)
+    lp_chunked, chunked = saved_sizes(2 * big)
+    assert max(fused) >= N * big  # the fused head keeps the softmax
+    assert max(chunked) <= big * 32, (max(chunked), N * big)  # the head weight is the largest thing kept
+    torch.testing.assert_close(lp_chunked, lp_fused, atol=1e-5, rtol=1e-5)

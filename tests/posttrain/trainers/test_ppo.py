@@ -429,8 +429,8 @@ def test_lora_ppo_learns_with_no_reference_copy_and_saves_a_merged_model(world, 
     monkeypatch.setattr(models, "load_model", lambda *a, **k: loads.append(a[0]) or real_load(*a, **k))
     out = tmp_path / "lora"
     assert main(_args(world, out, f"task.train_file={world['short']}", "reward=rm", f"reward_model={world['rm']}",
-                      "max_steps=8", "rollout_batch_size=32", "minibatch_size=16", "ppo_epochs=4",
-                      "max_new_tokens=12", "lr=1e-2", "kl_coef=0.01", "eval_every=4", "final_eval_rows=8",
+                      "max_steps=12", "rollout_batch_size=32", "minibatch_size=16", "ppo_epochs=4",
+                      "max_new_tokens=24", "lr=1e-2", "kl_coef=0.01", "eval_every=4", "final_eval_rows=8",
                       "lora.enabled=true", *learning.overrides)) == 0
     text = capsys.readouterr().out
     assert "LoRA r=16" in text and "(policy)" in text and "(value model)" in text
