@@ -76,6 +76,12 @@ class RunConfig:
     """torch CPU threads (0: leave torch's default)."""
     quiet: bool = False
     """No progress bar; metrics still go to metrics.jsonl."""
+    mixed_precision: Literal["no", "bf16", "auto"] = "no"
+    """bf16 autocast over fp32 weights in every stage's training forward and backward (the weights, optimizer state,
+    losses and advantages stay fp32; log-probs are taken in fp32 from the bf16 forward's logits, so PPO / GRPO
+    ratios to the fp32 sampler are no longer exactly 1; generation stays fp32): no (what `accelerate launch`
+    says, else none), bf16, or auto (bf16 where the hardware has native bf16: a GPU, or a CPU with AVX512-BF16
+    or AMX; on other CPUs bf16 is emulated and slower)."""
     micro_batch_tokens: int = 0
     """Padded tokens per forward / backward in every stage, a bound on activation memory (each stage's
     micro_batch_size still caps the rows); 0: auto, the tokens whose activations take ~2 GiB for this model
@@ -139,8 +145,11 @@ def coerce(value: Any, tp: Any, key: str) -> Any:
     if tp is Any:
         return value
     if origin is Literal:
-        if isinstance(value, bool) and ("on" if value else "off") in typing.get_args(tp):
-            return "on" if value else "off"  # YAML 1.1 reads a bare on / off as a boolean
+        if isinstance(value, bool):  # YAML 1.1 reads a bare on / off / yes / no as a boolean
+            word = next((w for w in (("on", "yes", "true") if value else ("off", "no", "false"))
+                         if w in typing.get_args(tp)), None)
+            if word is not None:
+                return word
         if value in typing.get_args(tp):
             return value
         raise ConfigError(f"config key {key!r}: {value!r} is not {_type_name(tp)}")

@@ -40,6 +40,7 @@ import torch
 from posttrain.data import token_groups  # noqa: F401  (micro-batches by tokens; importable from here)
 from posttrain.errors import TrainingError  # noqa: F401  (raised here; importable from here as before)
 from posttrain.runtime import has_accelerator_device, set_threads, tune_malloc
+from posttrain.runtime import mixed_precision as resolve_mixed_precision
 
 
 
@@ -62,6 +63,11 @@ def setup(seed: int, threads: int = 0, mixed_precision: str | None = None):
     # Without a GPU, ask for the CPU explicitly: then `accelerate launch --multi_gpu --num_processes N` or
     # `torchrun --nproc_per_node N` (which set LOCAL_RANK / WORLD_SIZE) give N CPU processes over gloo
     # (accelerate's MULTI_CPU) instead of N unconnected single-process runs.
+    from accelerate.state import AcceleratorState
+
+    # Each stage is a run of its own: chained stages (and tests) in one process may ask for another mixed
+    # precision, which accelerate's process-wide state refuses to change; the process group (PartialState) stays.
+    AcceleratorState._reset_state(reset_partial_state=False)
     accelerator = Accelerator(mixed_precision=mixed_precision, cpu=not has_accelerator_device())
     seed_everything(seed)
     return accelerator
@@ -83,10 +89,13 @@ def start_run(res, seed: int, resume: bool, check: Callable[[Any], None] | None 
     config.yaml, every process waiting for that. Returns (accelerator, say)."""
     from posttrain.config import save_resolved
 
-    accelerator = setup(seed, res.run.threads)
+    accelerator = setup(seed, res.run.threads, resolve_mixed_precision(res.run.mixed_precision))
     if check is not None:
         check(accelerator)
     say = main_printer(accelerator)
+    if accelerator.mixed_precision != "no":
+        say(f"[run] {accelerator.mixed_precision} autocast over fp32 weights (run.mixed_precision="
+            f"{res.run.mixed_precision}); generation stays fp32")
     if accelerator.is_main_process:
         prepare_run_dir(res.stage_dir(), resume, say)
         save_resolved(res, res.stage_dir() / "config.yaml")

@@ -37,6 +37,36 @@ def dtype_problem(name: str) -> str | None:
             "and for bf16 compute over fp32 weights launch with `accelerate launch --mixed_precision bf16`")
 
 
+def cpu_flags() -> set[str]:
+    """The CPU feature flags of /proc/cpuinfo (empty where there is none)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+def native_bf16() -> bool:
+    """bf16 matmuls run natively here: a CUDA GPU with bf16 support, or a CPU with AVX512-BF16 or AMX-BF16
+    (there bf16 autocast is 2-3x the fp32 matmul rate; without them it emulates bf16 and is slower)."""
+    if torch.cuda.is_available():
+        return bool(torch.cuda.is_bf16_supported())
+    return bool({"avx512_bf16", "amx_bf16"} & cpu_flags())
+
+
+def mixed_precision(setting: str) -> str | None:
+    """`run.mixed_precision` -> what `accelerate.Accelerator(mixed_precision=...)` gets: "no" -> None (what
+    `accelerate launch` was given, else none), "bf16" -> "bf16", "auto" -> "bf16" where `native_bf16()`, else None."""
+    if setting not in ("no", "bf16", "auto"):
+        raise ValueError(f"run.mixed_precision must be no, bf16 or auto, got {setting!r}")
+    if setting == "bf16" or (setting == "auto" and native_bf16()):
+        return "bf16"
+    return None
+
+
 def set_threads(threads: int) -> None:
     """torch's intra-op threads (`run.threads`); 0 keeps torch's default."""
     if threads > 0:

@@ -129,7 +129,8 @@ class GRPOConfig:
     minibatches: int = 1
     """Optimizer updates per pass (the batch is split into this many minibatches)."""
     micro_batch_size: int = 0
-    """Rows per forward pass (gradient accumulation); 0: a whole minibatch at once."""
+    """Rows per forward pass at most (gradient accumulation); 0: no row cap. `run.micro_batch_tokens` also caps
+    the padded tokens of each (auto: ~2 GiB of activations for the model)."""
     old_logprobs: Literal["rollout", "recompute"] = "rollout"
     """pi_old: the rollout engine's log-probs (no extra forward) or a no-grad recompute."""
     mask_truncated: bool = False

@@ -40,7 +40,8 @@ stops the run naming the iteration; the last good checkpoint stays. In memory: p
 
 Several processes follow posttrain/sharding.py: `rollout_batch_size` and `minibatch_size` are global (minibatch_size
 a multiple of the processes), everything computed from the gathered batch is global, `sharding.token_share` gives
-DDP the whole minibatch's gradient (also when `run.micro_batch_tokens` splits a minibatch into micro-batches); the main process evaluates and writes metrics.jsonl, final/ and eval.json.
+DDP the whole minibatch's gradient (also when `run.micro_batch_tokens` splits a minibatch into micro-batches);
+the main process evaluates and writes metrics.jsonl, final/ and eval.json.
 
 LoRA (`models.maybe_lora`): policy and value model (SEQ_CLS: its head trains fully) get adapters; the reference is
 the policy with them off (`models.reference_view`): 3 sets of base weights. final/ is saved merged. See RESULTS.md.
@@ -79,7 +80,8 @@ class PPOConfig:
     rollout_batch_size: int = 64
     """Training prompts per iteration (one sampled completion each; global, across processes)."""
     minibatch_size: int = 16
-    """Rollouts per optimizer step (each model steps once per minibatch; global, a multiple of the processes)."""
+    """Rollouts per optimizer step (each model steps once per minibatch; global, a multiple of the processes);
+    forward in micro-batches of at most `run.micro_batch_tokens` padded tokens (auto: ~2 GiB of activations)."""
     ppo_epochs: int = 2
     """Passes over each rollout batch, minibatches reshuffled every pass."""
     lr: float = 1e-4

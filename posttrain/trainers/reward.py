@@ -53,7 +53,8 @@ class RMConfig:
     batch_size: int = 32
     """Pairs per optimizer step (global, across processes)."""
     micro_batch_size: int = 0
-    """Pairs per forward pass (each is 2 rows); 0 means batch_size."""
+    """Pairs per forward pass at most (each is 2 rows); 0 means batch_size. `run.micro_batch_tokens` also caps the
+    padded tokens of each (auto: ~2 GiB of activations for the model)."""
     max_steps: int = 150
     """Optimizer steps."""
     warmup_steps: int = 10

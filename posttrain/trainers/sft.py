@@ -1,6 +1,6 @@
 """Supervised fine-tuning (stage 0): next-token loss on completions, prompt tokens masked.
 
-CPU:        posttrain sft --recipe tiny-summarize            (~2-3 min on 2 cores, from nothing)
+CPU:        posttrain sft --recipe tiny-summarize            (~4-5 min on 2 cores, from nothing)
 Multi-GPU:  accelerate launch --num_processes 8 -m posttrain sft --recipe tiny-summarize model.path=/path/to/hf-model
 
 Reads top to bottom: build model and data, loop { batch -> loss -> optimizer step -> log
@@ -49,7 +49,8 @@ class SFTConfig:
     batch_size: int = 32
     """Sequences per optimizer step (global, across processes)."""
     micro_batch_size: int = 0
-    """Sequences per forward pass; 0 means batch_size (no gradient accumulation)."""
+    """Sequences per forward pass at most; 0 means batch_size. `run.micro_batch_tokens` also caps the padded
+    tokens of each (auto: ~2 GiB of activations for the model)."""
     max_steps: int = 400
     """Optimizer steps."""
     warmup_steps: int = 20

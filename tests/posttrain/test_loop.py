@@ -267,3 +267,18 @@ def test_resume_run_fresh_missing_and_restored(tmp_path):
     state = loop.resume_run(ckpt, log, model, resume=True, say=said.append, tag="t", unit="iteration")
     assert state["step"] == 2 and state["extra"] == {"k": 1} and said[-1].endswith("at iteration 2")
     assert [r["step"] for r in loop.iter_jsonl(tmp_path / "metrics.jsonl")] == [1, 2]
+
+
+def test_mixed_precision_auto_is_bf16_only_where_the_hardware_has_it(monkeypatch):
+    from posttrain import runtime
+
+    monkeypatch.setattr(runtime.torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f", "avx512_bf16"})
+    assert runtime.native_bf16() and runtime.mixed_precision("auto") == "bf16"
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "amx_bf16", "amx_tile"})
+    assert runtime.mixed_precision("auto") == "bf16"
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f"})  # Zen 3 / older Intel: emulated bf16
+    assert not runtime.native_bf16() and runtime.mixed_precision("auto") is None
+    assert runtime.mixed_precision("bf16") == "bf16" and runtime.mixed_precision("no") is None
+    with pytest.raises(ValueError, match="run.mixed_precision must be no, bf16 or auto"):
+        runtime.mixed_precision("fp8")
