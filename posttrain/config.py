@@ -63,7 +63,7 @@ class ModelConfig:
     """System message put before every prompt (needs a chat template); null: what the model's template says."""
     dtype: Literal["float32", "bfloat16", "float16"] = "float32"
     """Weights dtype of every model a stage loads; bfloat16 / float16 need a GPU (on CPU: float32 weights, and
-    `accelerate launch --mixed_precision bf16` for bf16 compute)."""
+    `run.mixed_precision=bf16` / `auto` for bf16 compute)."""
     gradient_checkpointing: bool = False
     """Recompute activations in the backward pass of trained models (less memory, slower; same losses)."""
 

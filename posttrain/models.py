@@ -10,7 +10,7 @@ model a stage loads with `load_model`; the half dtypes are refused without a GPU
 train without an fp32 master copy, and many CPUs have no bf16 matmul units (where a CPU has them, bf16
 autocast over fp32 weights is the fast path; RESULTS.md). With bfloat16 the trained weights and the optimizer run
 in bf16 (no fp32 master copy); for fp32 weights with bf16 compute keep float32 and launch with
-`accelerate launch --mixed_precision bf16`. Reward-model scoring (`posttrain.scoring`) stays fp32.
+`run.mixed_precision=bf16` (or `auto`). Reward-model scoring (`posttrain.scoring`) stays fp32.
 
 A local model directory (`model.path`) is any causal LM `AutoModelForCausalLM` loads; its chat
 template is applied to prompts as `posttrain.chat` describes. `model.gradient_checkpointing`

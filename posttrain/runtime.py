@@ -34,7 +34,7 @@ def dtype_problem(name: str) -> str | None:
         return None
     return (f"model.dtype={name}: no GPU found; on CPU posttrain trains float32 weights ({name} weights would "
             "train without an fp32 master copy, and many CPUs have no bf16 matmul units); use model.dtype=float32, "
-            "and for bf16 compute over fp32 weights launch with `accelerate launch --mixed_precision bf16`")
+            "and for bf16 compute over fp32 weights set run.mixed_precision=bf16 (or auto)")
 
 
 def cpu_flags() -> set[str]:
