@@ -286,9 +286,6 @@ def batch_indices(n: int, batch_size: int, seed: int, step: int, rank: int = 0, 
     return [int(j) for j in idx[rank::world]]
 
 
-def chunks(seq: list[Any], size: int) -> list[list[Any]]:
-    return [seq[i:i + size] for i in range(0, len(seq), max(1, size))]
-
 
 
 # ----------------------------------------------------------------------------- metrics
