@@ -35,6 +35,8 @@ class TaskConfig:
     """Number of generated held-out examples."""
     seed: int = 0
     """Seed of the task generator (train and eval streams are derived from it)."""
+    difficulty: int = 0
+    """Difficulty level of a task that has levels (word-math: 1-3); 0: the task's default."""
     train_file: str | None = None
     """Optional JSONL/Parquet/dataset dir replacing the generated training set."""
     eval_file: str | None = None

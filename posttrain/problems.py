@@ -252,6 +252,7 @@ class HeldOut:
     n_eval: int
     n_final: int
     stage: str = "grpo"
+    start: str = "SFT"  # what the model before training is called in the console ("base" under model.start_from=base)
 
     def evaluate(self, policy, tokenizer, n: int) -> dict[str, Any]:
         """Greedy completions of the first n problems: texts, lengths, truncation, verifier and reward-model scores."""
@@ -306,7 +307,7 @@ class HeldOut:
         if self.n_eval:
             metrics.log(0, baseline["eval_metrics"], console=False)
         key = "eval/accuracy" if "eval/accuracy" in baseline["metrics"] else "eval/rm"
-        say(f"[{self.stage}] SFT model, greedy, {self.n_final or self.n_eval} held-out problems: {key.removeprefix('eval/')} "
+        say(f"[{self.stage}] {self.start} model, greedy, {self.n_final or self.n_eval} held-out problems: {key.removeprefix('eval/')} "
             f"{baseline['metrics'][key]:.3f} ({time.time() - t0:.1f}s)")
         return baseline
 
@@ -321,7 +322,7 @@ class HeldOut:
             metrics.log(step, self.summarise(ev, self.n_eval), console=False)
         before = baseline.get("metrics", {})
         key = "eval/accuracy" if "eval/accuracy" in after else "eval/rm"
-        was = f"SFT {before[key]:.3f} -> " if key in before else ""
+        was = f"{self.start} {before[key]:.3f} -> " if key in before else ""
         say(f"[{self.stage}] held-out greedy {key.removeprefix('eval/')} on {n} problems: {was}{self.stage.upper()} "
             f"{after[key]:.3f}")
         return {"rows": n, "sft": before, self.stage: after, "samples": self.samples(ev)}

@@ -64,6 +64,7 @@ TASKS: dict[str, str] = {
     "tiny-math": "posttrain.tasks.math",
     "tiny-countdown": "posttrain.tasks.countdown",
     "tiny-code": "posttrain.tasks.code",
+    "word-math": "posttrain.tasks.wordmath",
 }
 
 
@@ -96,9 +97,28 @@ def load_split(task_cfg, split: str) -> list[dict]:
         return [dict(r) for r in load_rows(file, "sft")]
     task = _task_or_config_error(task_cfg.name)
     n = task_cfg.n_train if split == "train" else task_cfg.n_eval
-    rows = task.make_examples(n, task_cfg.seed, split)
+    rows = task.make_examples(n, task_cfg.seed, split, **difficulty_kwargs(task, task_cfg))
     validate_rows(rows, "sft", f"task {task_cfg.name} ({split})")
     return rows
+
+
+def difficulty_kwargs(task: Task, task_cfg) -> dict[str, int]:
+    """{"difficulty": level} for a task with levels (a module-level DIFFICULTIES tuple; `task.difficulty`
+    0 is its default), {} for one without; a ConfigError for a level it does not have."""
+    from posttrain.errors import ConfigError
+
+    level = getattr(task_cfg, "difficulty", 0)
+    levels = getattr(task, "DIFFICULTIES", None)
+    if levels is None:
+        if level:
+            raise ConfigError(f"task.difficulty: task {task.NAME!r} has no difficulty levels; leave task.difficulty at 0")
+        return {}
+    if level == 0:
+        return {}
+    if level not in levels:
+        raise ConfigError(f"task.difficulty: task {task.NAME!r} has levels {', '.join(map(str, levels))} "
+                          f"(0: its default), got {level}")
+    return {"difficulty": level}
 
 
 def tokenizer_corpus(task_cfg) -> list[str]:

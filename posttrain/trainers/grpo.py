@@ -497,7 +497,8 @@ def train(res: Resolved, ensure) -> Path:
                               on_error=cfg.on_verifier_error, verifier_weight=cfg.verifier_weight,
                               reward_model_weight=cfg.reward_model_weight)
         held = HeldOut(eval_problems, reward, cfg.max_new_tokens, min(cfg.eval_rows, len(eval_problems)),
-                       min(cfg.final_eval_rows, len(eval_problems)))
+                       min(cfg.final_eval_rows, len(eval_problems)),
+                       start="base" if res.model.start_from == "base" else "SFT")
         # pi_old recomputed: asked for, a truncated sampler (top-p) at temperature != 1, or vLLM rollouts
         recompute_old = cfg.old_logprobs == "recompute" or (cfg.temperature != 1.0 and cfg.top_p < 1.0) \
             or default_backend() == "vllm"
