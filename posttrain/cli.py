@@ -212,7 +212,10 @@ def main(argv: list[str] | None = None) -> int:
 
         configure(**asdict(res.rollout))  # every stage of this command generates through it (vllm: checked here)
         _quiet_libraries()
-        run(res, lambda name: ensure_stage(res, name))
+        try:
+            run(res, lambda name: ensure_stage(res, name))
+        finally:
+            configure()  # the process-wide defaults again (a caller of main() generates as before)
         return 0
     except Exception as e:  # user errors: one line, no traceback
         from posttrain.data import DataError

@@ -81,7 +81,7 @@ class RunConfig:
     mixed_precision: Literal["no", "bf16", "auto"] = "no"
     """bf16 autocast over fp32 weights in every stage's training forward and backward (the weights, optimizer state,
     losses and advantages stay fp32; log-probs are taken in fp32 from the bf16 forward's logits, so PPO / GRPO
-    ratios to the fp32 sampler are no longer exactly 1; generation stays fp32): no (what `accelerate launch`
+    ratios to the fp32 sampler are no longer exactly 1; generation is not autocast: `rollout.dtype` sets it): no (what `accelerate launch`
     says, else none), bf16, or auto (bf16 where the hardware has native bf16: a GPU, or a CPU with AVX512-BF16
     or AMX; on other CPUs bf16 is emulated and slower)."""
     micro_batch_tokens: int = 0
@@ -111,6 +111,10 @@ class LoRAConfig:
 class RolloutConfig:
     backend: Literal["auto", "lean", "hf", "vllm"] = "auto"
     """Generator of every stage: built-in engine (auto: lean forward if supported; lean; hf) or vllm (GPU)."""
+    dtype: Literal["float32", "bfloat16"] = "float32"
+    """Weights of the built-in engine's matmuls: float32, or bfloat16 (a bf16 copy of the policy, refreshed after every
+    update: faster sampling where the CPU or GPU has native bf16; the sampler's log-probs then differ slightly from
+    the trainer's, logged as mismatch/kl). The HF forward and vLLM (vllm_dtype) ignore it."""
     vllm_gpu_memory_utilization: float = 0.3
     """backend=vllm: fraction of the GPU's memory vLLM takes (weights + KV cache); the rest is left to training."""
     vllm_dtype: str = "auto"

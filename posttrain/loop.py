@@ -95,7 +95,7 @@ def start_run(res, seed: int, resume: bool, check: Callable[[Any], None] | None 
     say = main_printer(accelerator)
     if accelerator.mixed_precision != "no":
         say(f"[run] {accelerator.mixed_precision} autocast over fp32 weights (run.mixed_precision="
-            f"{res.run.mixed_precision}); generation stays fp32")
+            f"{res.run.mixed_precision}); generation is not autocast (rollout.dtype={res.rollout.dtype})")
     if accelerator.is_main_process:
         prepare_run_dir(res.stage_dir(), resume, say)
         save_resolved(res, res.stage_dir() / "config.yaml")

@@ -21,12 +21,21 @@ Pipeline, through the public CLI and API only:
      against inference samples and tokens per problem.
   5. Report under --out: report.md, PNG plots, e7.json (the data of every figure and table).
 
+--model real: E7 as the seed states it ("take a small instruction-tuned LM"): the smol-math recipe on
+  SmolLM2-135M-Instruct (`posttrain models fetch smollm2-135m-instruct models/smollm2-135m-instruct` first).
+  Step 1 is skipped: the instruct model as it is is the starting point (model.start_from=base), prompted
+  through its own chat template; the held-out set is word-math's (posttrain/tasks/wordmath.py); samples
+  are drawn at the recipe's GRPO temperature; phrases counted are word-math's (verification, self-
+  correction, re-computation lines), with examples; the report states the verdict against the +10-point
+  target.
+
 CPU:  python scripts/reproduce_e7.py            the shipped recipe; about 15 min with --threads 1 on 2 CPU cores
       python scripts/reproduce_e7.py --quick    a smoke run of the same pipeline (short SFT and GRPO, 40
                                                 held-out problems); a few minutes
       Measured runtimes and results, with their machine and commit: RESULTS.md (E7).
 Multi-GPU: each stage accepts `accelerate launch`; this script runs them one process at a time.
-Options: --out DIR (default runs/e7 or runs/e7-quick), --threads N (torch threads per stage and for the
+      python scripts/reproduce_e7.py --model real [--quick]   see RESULTS.md (E7 on a real model) for its runtime
+Options: --model tiny|real, --out DIR (default runs/e7[-real][-quick]), --threads N (torch threads per stage and for the
          evaluation here; 0 = torch's default), --eval-rows N, --fresh (redo everything; by default a
          finished SFT or GRPO run in --out is reused), any number of `--set stage.key=value` overrides
          passed to both CLI stages (e.g. --set grpo.max_steps=100).
@@ -39,12 +48,14 @@ from __future__ import annotations
 
 import argparse
 import collections
+import importlib
 import json
 import math
 import os
 import shutil
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,18 +63,42 @@ sys.path.insert(0, str(ROOT))
 
 from stage_runner import run_stage  # noqa: E402  (scripts/, this file's folder)
 
-RECIPE = "tiny-math"
 KS = (1, 4, 16)  # samples per problem for best-of-K / majority vote
 N_SAMPLES = max(KS)  # samples drawn per problem; every K is estimated from these
-SAMPLE_TEMPERATURE = 1.0  # the temperature GRPO samples at
-QUICK = ["sft.max_steps=120", "grpo.max_steps=6", "grpo.eval_every=3", "grpo.eval_rows=40",
-         "grpo.final_eval_rows=40", "grpo.save_every=0"]
+
+
+@dataclass(frozen=True)
+class Mode:
+    """What differs between E7 on the tiny model trained from scratch and on the real instruct model."""
+    name: str
+    recipe: str
+    task: str  # the task module
+    start: str  # what the model before RL is called in the report
+    runs_sft: bool  # tiny: SFT from scratch first; real: the instruct model as it is (model.start_from=base)
+    quick: tuple[str, ...]
+    default_eval_rows: tuple[int, int]  # (full, --quick)
+    behaviours: tuple[tuple[str, str], ...]  # (behaviour_counts key, label)
+
+
+MODES = {
+    "tiny": Mode("tiny", "tiny-math", "posttrain.tasks.math", "SFT", True,
+                 ("sft.max_steps=120", "grpo.max_steps=6", "grpo.eval_every=3", "grpo.eval_rows=40",
+                  "grpo.final_eval_rows=40", "grpo.save_every=0"), (200, 40),
+                 (("frac_worked", "works the problem in columns"), ("frac_verification", "'check' (verification)"),
+                  ("frac_self_correction", "self-correction words"))),
+    "real": Mode("real", "smol-math", "posttrain.tasks.wordmath", "instruct", False,
+                 ("grpo.max_steps=10", "grpo.eval_every=5", "grpo.eval_rows=48", "grpo.final_eval_rows=0",
+                  "grpo.save_every=0"), (150, 48),
+                 (("frac_verification", "verification phrases"), ("frac_self_correction", "self-correction phrases"),
+                  ("frac_recomputation", "re-computation lines"))),
+}
+QUICK = list(MODES["tiny"].quick)
 
 
 # ----------------------------------------------------------------------------- running stages
-def posttrain(stage: str, output_dir: Path, threads: int, log: Path, overrides: list[str]) -> float:
-    """Run `python -m posttrain STAGE --recipe tiny-math` as a user would; the wall time; raises with the log's tail."""
-    took = run_stage([stage, "--recipe", RECIPE, f"run.output_dir={output_dir}", f"run.threads={threads}",
+def posttrain(stage: str, recipe: str, output_dir: Path, threads: int, log: Path, overrides: list[str]) -> float:
+    """Run `python -m posttrain STAGE --recipe RECIPE` as a user would; the wall time; raises with the log's tail."""
+    took = run_stage([stage, "--recipe", recipe, f"run.output_dir={output_dir}", f"run.threads={threads}",
                       *overrides], log, threads, "reproduce_e7")
     print(f"[e7] posttrain {stage}: {took:.0f}s (log {log})", flush=True)
     return took
@@ -114,17 +149,22 @@ def answer_key(verdict) -> str | None:
 
 
 # ----------------------------------------------------------------------------- evaluation of one model
-def evaluate_model(model_dir: Path, rows: list[dict], max_new_tokens: int, pool, seed: int = 0) -> dict:
-    """Greedy and N_SAMPLES-sample evaluation of one model on held-out rows; everything the report needs."""
+def evaluate_model(model_dir: Path, rows: list[dict], max_new_tokens: int, pool, seed: int = 0, *,
+                   mode: Mode = MODES["tiny"], temperature: float = 1.0) -> dict:
+    """Greedy and N_SAMPLES-sample (at `temperature`) evaluation of one model on held-out rows; everything the
+    report needs."""
     import torch
 
+    from posttrain import chat
     from posttrain.models import load_model, load_tokenizer
     from posttrain.rollout import SamplingParams, generate
-    from posttrain.tasks import math as task
     from verifiers.registry import get_verifier
+
+    task = importlib.import_module(mode.task)
 
     verifier = get_verifier("math")
     tok, model = load_tokenizer(model_dir), load_model(model_dir)
+    chat.configure(tok, "auto", say=lambda _: None)  # prompts through the model's chat template, as the stages do
     prompts, refs = [r["prompt"] for r in rows], [r["answer"] for r in rows]
     keys = list(range(len(rows)))
     out: dict = {"model": str(model_dir), "rows": len(rows)}
@@ -134,7 +174,7 @@ def evaluate_model(model_dir: Path, rows: list[dict], max_new_tokens: int, pool,
                           prompt_keys=keys)
         t_greedy = time.time() - t0
         t0 = time.time()
-        samples = generate(model, tok, prompts, SamplingParams(n=N_SAMPLES, temperature=SAMPLE_TEMPERATURE,
+        samples = generate(model, tok, prompts, SamplingParams(n=N_SAMPLES, temperature=temperature,
                                                                max_new_tokens=max_new_tokens, seed=seed),
                            prompt_keys=keys)
         t_samples = time.time() - t0
@@ -156,6 +196,8 @@ def evaluate_model(model_dir: Path, rows: list[dict], max_new_tokens: int, pool,
     n_right = [sum(ok for _, ok in p) for p in per_problem]
     by_question = {}
     for name, want in (("direct-style question", True), ("other questions", False)):
+        if mode.name != "tiny":
+            break  # the two answer styles are tiny-math's
         idx = [i for i, r in enumerate(rows) if (r["meta"]["template"][1] == task.DIRECT_QUESTION) == want]
         if idx:
             by_question[name] = {"n": len(idx), "greedy_accuracy": sum(g_right[i] for i in idx) / len(idx),
@@ -179,12 +221,21 @@ def evaluate_model(model_dir: Path, rows: list[dict], max_new_tokens: int, pool,
         "behaviour_greedy": task.behaviour_counts([r.text for r in greedy]),
         "behaviour_samples": task.behaviour_counts([r.text for r in samples]),
         "greedy_reasons": dict(collections.Counter(v.reason for v in g_verdicts).most_common()),
-        # the first held-out problems asking the direct-style question, where SFT and GRPO behave differently
+        # tiny: the first held-out problems asking the direct-style question, where SFT and GRPO behave
+        # differently; real: the first held-out problems
         "examples": [{"prompt": r["prompt"], "greedy": g.text, "right": ok}
                      for r, g, ok in zip(rows, greedy, g_right)
-                     if r["meta"]["template"][1] == task.DIRECT_QUESTION][:4],
+                     if mode.name != "tiny" or r["meta"]["template"][1] == task.DIRECT_QUESTION][:4],
+        # samples showing a counted phrase (verification, self-correction, re-computation)
+        "sample_examples": [{"prompt": rows[r.prompt_index]["prompt"], "sample": r.text, "right": v.score >= 1.0}
+                            for r, v in zip(samples, s_verdicts) if _shows_behaviour(task, r.text, mode)][:3],
     })
     return out
+
+
+def _shows_behaviour(task, text: str, mode: Mode) -> bool:
+    counts = task.behaviour_counts([text])
+    return any(counts[k] > 0 for k, _ in mode.behaviours if k != "frac_worked")
 
 
 # ----------------------------------------------------------------------------- GRPO run
@@ -222,29 +273,28 @@ def grpo_curves(run_dir: Path) -> dict:
     }
 
 
-def rollout_behaviour(run_dir: Path) -> dict:
+def rollout_behaviour(run_dir: Path, mode: Mode = MODES["tiny"]) -> dict:
     """Phrase frequencies and lengths of the saved training rollouts, per saved step."""
     from posttrain.rollout import load_rollouts
-    from posttrain.tasks import math as task
 
-    steps, worked, ver, cor, length = [], [], [], [], []
+    task = importlib.import_module(mode.task)
+    out: dict[str, list] = {"steps": [], "length": [], **{k: [] for k, _ in mode.behaviours}}
     for path in sorted((run_dir / "rollouts").glob("step-*.jsonl")):
         rollouts = load_rollouts(path)
-        texts = [r.text for r in rollouts]
-        b = task.behaviour_counts(texts)
-        steps.append(int(path.stem.split("-")[1]))
-        worked.append(b["frac_worked"])
-        ver.append(b["frac_verification"])
-        cor.append(b["frac_self_correction"])
-        length.append(sum(len(r.completion_ids) for r in rollouts) / max(1, len(rollouts)))
-    return {"steps": steps, "frac_worked": worked, "frac_verification": ver, "frac_self_correction": cor,
-            "length": length}
+        b = task.behaviour_counts([r.text for r in rollouts])
+        out["steps"].append(int(path.stem.split("-")[1]))
+        for k, _ in mode.behaviours:
+            out[k].append(b[k])
+        out["length"].append(sum(len(r.completion_ids) for r in rollouts) / max(1, len(rollouts)))
+    return out
 
 
 def sft_cost(run_dir: Path, rows: list[dict], tokenizer_dir: Path) -> dict:
     """SFT's training tokens: steps x batch x the mean tokens of a training row (prompt + solution + eos)."""
     from posttrain.models import load_tokenizer
 
+    if not (run_dir / "config.yaml").is_file():  # no SFT stage (the real instruct model)
+        return {"steps": 0, "batch_size": 0, "tokens": 0.0, "sequences": 0, "mean_row_tokens": 0.0}
     cfg = read_yaml(run_dir / "config.yaml").get("sft", {})
     tok = load_tokenizer(tokenizer_dir)
     sample = rows[:500]
@@ -272,29 +322,30 @@ def compute_table(res: dict) -> dict:
     sft, grpo = res["eval"]["sft"], res["eval"]["grpo"]
     g = res["grpo"]
     sec = res["seconds"]
+    S = res.get("start_label", "SFT")
     rows = res["eval_rows"]
     per_sample_s = sft["sample_seconds"] / (rows * N_SAMPLES)
     routes = []
     for k in KS:
-        routes.append({"route": f"SFT, maj@{k}" if k > 1 else "SFT, 1 sample (T=1)",
+        routes.append({"route": f"{S}, maj@{k}" if k > 1 else f"{S}, 1 sample (T={res.get('temperature', 1.0):g})",
                        "accuracy": sft["maj_at_k"][k], "oracle_accuracy": sft["pass_at_k"][k],
                        "train_seconds": sec["sft"], "train_tokens": res["sft_cost"]["tokens"],
                        "inference_samples_per_problem": k,
                        "inference_tokens_per_problem": k * sft["sample_tokens_per_sample"],
                        "inference_seconds_per_problem": k * per_sample_s})
-    routes.insert(0, {"route": "SFT, greedy", "accuracy": sft["greedy_accuracy"], "oracle_accuracy": None,
+    routes.insert(0, {"route": f"{S}, greedy", "accuracy": sft["greedy_accuracy"], "oracle_accuracy": None,
                       "train_seconds": sec["sft"], "train_tokens": res["sft_cost"]["tokens"],
                       "inference_samples_per_problem": 1,
                       "inference_tokens_per_problem": sft["greedy_tokens_per_problem"],
                       "inference_seconds_per_problem": sft["greedy_seconds"] / rows})
-    routes.append({"route": "SFT + GRPO, greedy", "accuracy": grpo["greedy_accuracy"], "oracle_accuracy": None,
+    routes.append({"route": f"{S} + GRPO, greedy", "accuracy": grpo["greedy_accuracy"], "oracle_accuracy": None,
                    "train_seconds": sec["sft"] + sec["grpo"], "train_tokens": res["sft_cost"]["tokens"],
                    "grpo_sampled_tokens": g["sampled_tokens"], "grpo_sampled_sequences": g["sampled_sequences"],
                    "inference_samples_per_problem": 1,
                    "inference_tokens_per_problem": grpo["greedy_tokens_per_problem"],
                    "inference_seconds_per_problem": grpo["greedy_seconds"] / rows})
     for k in KS[1:]:
-        routes.append({"route": f"SFT + GRPO, maj@{k}", "accuracy": grpo["maj_at_k"][k],
+        routes.append({"route": f"{S} + GRPO, maj@{k}", "accuracy": grpo["maj_at_k"][k],
                        "oracle_accuracy": grpo["pass_at_k"][k], "train_seconds": sec["sft"] + sec["grpo"],
                        "train_tokens": res["sft_cost"]["tokens"], "grpo_sampled_tokens": g["sampled_tokens"],
                        "inference_samples_per_problem": k,
@@ -333,15 +384,17 @@ def plots(res: dict, out: Path) -> dict[str, dict]:
     import matplotlib.pyplot as plt
 
     sft, grpo, g = res["eval"]["sft"], res["eval"]["grpo"], res["grpo"]
+    mode = MODES[res.get("mode", "tiny")]
+    S, T = mode.start, res.get("temperature", 1.0)
     figs: dict[str, dict] = {}
 
     # 1. held-out greedy accuracy over GRPO steps, with the no-RL baselines
     fig, ax = plt.subplots(figsize=(7, 4.2))
     ax.plot(g["eval_steps"], g["eval_accuracy"], "o-", color="tab:red", label="GRPO, greedy (held-out)")
-    lines = {"SFT greedy": (sft["greedy_accuracy"], "k", "-"),
-             "SFT maj@16": (sft["maj_at_k"][16], "tab:blue", "--"),
-             "SFT pass@4 (oracle)": (sft["pass_at_k"][4], "tab:green", ":"),
-             "SFT pass@16 (oracle)": (sft["pass_at_k"][16], "tab:green", "--")}
+    lines = {f"{S} greedy": (sft["greedy_accuracy"], "k", "-"),
+             f"{S} maj@16": (sft["maj_at_k"][16], "tab:blue", "--"),
+             f"{S} pass@4 (oracle)": (sft["pass_at_k"][4], "tab:green", ":"),
+             f"{S} pass@16 (oracle)": (sft["pass_at_k"][16], "tab:green", "--")}
     for label, (y, c, ls) in lines.items():
         ax.axhline(y, color=c, ls=ls, lw=1, label=f"{label} {y:.2f}")
     ax.set_xlabel("GRPO step")
@@ -358,16 +411,16 @@ def plots(res: dict, out: Path) -> dict[str, dict]:
     # 2. accuracy against inference samples per problem
     fig, ax = plt.subplots(figsize=(7, 4.2))
     ks = list(range(1, N_SAMPLES + 1))
-    ax.plot(ks, sft["pass_curve"], "-", color="tab:green", label="SFT pass@K (oracle best-of-K)")
+    ax.plot(ks, sft["pass_curve"], "-", color="tab:green", label=f"{S} pass@K (oracle best-of-K)")
     ax.plot(ks, grpo["pass_curve"], "-", color="tab:orange", label="GRPO pass@K (oracle best-of-K)")
-    ax.plot(KS, [sft["maj_at_k"][k] for k in KS], "s--", color="tab:blue", label="SFT maj@K")
+    ax.plot(KS, [sft["maj_at_k"][k] for k in KS], "s--", color="tab:blue", label=f"{S} maj@K")
     ax.plot(KS, [grpo["maj_at_k"][k] for k in KS], "s--", color="tab:red", label="GRPO maj@K")
-    ax.plot([1], [sft["greedy_accuracy"]], "k^", ms=9, label="SFT greedy")
+    ax.plot([1], [sft["greedy_accuracy"]], "k^", ms=9, label=f"{S} greedy")
     ax.plot([1], [grpo["greedy_accuracy"]], "r*", ms=12, label="GRPO greedy")
     ax.set_xscale("log", base=2)
     ax.set_xticks([1, 2, 4, 8, 16])
     ax.set_xticklabels(["1", "2", "4", "8", "16"])
-    ax.set_xlabel(f"samples per problem at inference (T={SAMPLE_TEMPERATURE:g})")
+    ax.set_xlabel(f"samples per problem at inference (T={T:g})")
     ax.set_ylabel(f"held-out accuracy ({res['eval_rows']} problems)")
     ax.set_ylim(0, 1)
     ax.set_title("E7: inference-time compute vs RL")
@@ -383,7 +436,7 @@ def plots(res: dict, out: Path) -> dict[str, dict]:
 
     # 3. response length over training
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    ax.plot(g["steps"], g["train_length"], "-", color="tab:purple", lw=1, label="training samples (T=1), mean")
+    ax.plot(g["steps"], g["train_length"], "-", color="tab:purple", lw=1, label=f"training samples (T={T:g}), mean")
     ax.plot(g["eval_steps"], g["eval_length"], "o-", color="tab:red", label="held-out greedy, mean")
     ax.set_xlabel("GRPO step")
     ax.set_ylabel("completion length (tokens)")
@@ -400,23 +453,23 @@ def plots(res: dict, out: Path) -> dict[str, dict]:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
     ax = axes[0]
     if b["steps"]:
-        ax.plot(b["steps"], b["frac_worked"], "^-", color="tab:red", label="works the problem in columns")
-        ax.plot(b["steps"], b["frac_verification"], "o-", color="tab:blue", label="'check' (verification)")
-        ax.plot(b["steps"], b["frac_self_correction"], "s-", color="tab:gray", label="self-correction words")
+        for (key, label), (marker, color) in zip(mode.behaviours, (("^-", "tab:red"), ("o-", "tab:blue"),
+                                                                    ("s-", "tab:gray"))):
+            ax.plot(b["steps"], b[key], marker, color=color, label=label)
     ax.set_xlabel("GRPO step")
     ax.set_ylabel("fraction of training samples")
     ax.set_title("phrases in GRPO's training samples")
     ax.legend(fontsize=8)
     ax = axes[1]
-    keys = [("greedy", "frac_worked"), ("samples", "frac_worked"), ("greedy", "frac_verification"),
-            ("samples", "frac_verification"), ("greedy", "frac_self_correction"), ("samples", "frac_self_correction")]
-    labels = [f"{who}\n{dict(frac_worked='worked', frac_verification='check', frac_self_correction='self-corr.')[k]}"
-              for who, k in keys]
+    short = {"frac_worked": "worked", "frac_verification": "check" if mode.name == "tiny" else "verify",
+             "frac_self_correction": "self-corr.", "frac_recomputation": "re-comp."}
+    keys = [(who, k) for k, _ in mode.behaviours for who in ("greedy", "samples")]
+    labels = [f"{who}\n{short[k]}" for who, k in keys]
     before = [sft[f"behaviour_{who}"][k] for who, k in keys]
     after = [grpo[f"behaviour_{who}"][k] for who, k in keys]
     x = range(len(labels))
-    ax.bar([i - 0.2 for i in x], before, 0.4, label="SFT", color="tab:gray")
-    ax.bar([i + 0.2 for i in x], after, 0.4, label="SFT + GRPO", color="tab:red")
+    ax.bar([i - 0.2 for i in x], before, 0.4, label=S, color="tab:gray")
+    ax.bar([i + 0.2 for i in x], after, 0.4, label=f"{S} + GRPO", color="tab:red")
     ax.set_xticks(list(x))
     ax.set_xticklabels(labels, fontsize=8)
     ax.set_ylabel("fraction of held-out completions")
@@ -459,36 +512,48 @@ def report_md(res: dict) -> str:
     sft, grpo, g, c = res["eval"]["sft"], res["eval"]["grpo"], res["grpo"], res["compute"]
     sec = res["seconds"]
     gain = grpo["greedy_accuracy"] - sft["greedy_accuracy"]
+    mode = MODES[res.get("mode", "tiny")]
+    S, T, tiny = mode.start, res.get("temperature", 1.0), mode.name == "tiny"
     L = []
-    L.append(f"# E7: GRPO vs best-of-K on tiny-math{' (quick smoke run)' if res['quick'] else ''}\n")
+    L.append(f"# E7: GRPO vs best-of-K on {mode.recipe}{' (quick smoke run)' if res['quick'] else ''}\n")
     L.append(f"Runtime: {res['runtime_s'] / 60:.1f} min in all on this machine ({os.cpu_count()} cores, shared; "
-             f"torch threads per stage: {res['threads'] or 'default'}): SFT {sec['sft']:.0f} s, GRPO {sec['grpo']:.0f} s, "
+             f"torch threads per stage: {res['threads'] or 'default'}): "
+             + (f"SFT {sec['sft']:.0f} s, " if mode.runs_sft else "") + f"GRPO {sec['grpo']:.0f} s, "
              f"baseline and final evaluations {sec['eval']:.0f} s" + (" (reused runs: " + ", ".join(res["reused"]) + ")"
                                                                    if res["reused"] else "") + ".\n")
-    L.append(f"Command: `python scripts/reproduce_e7.py{' --quick' if res['quick'] else ''}"
-             f"{''.join(' --set ' + s for s in res['overrides'])}`. Model: `{res['preset']}` preset, "
-             f"{res['parameters'] / 1e6:.2f}M parameters, trained from scratch. Held-out: {res['eval_rows']} problems "
-             f"(number tuples and template pairings never seen in training). Samples: {N_SAMPLES} per problem at "
-             f"T={SAMPLE_TEMPERATURE:g}; every K is estimated from them.\n")
+    model_text = (f"Model: `{res['preset']}` preset, {res['parameters'] / 1e6:.2f}M parameters, trained from scratch. "
+                  f"Held-out: {res['eval_rows']} problems (number tuples and template pairings never seen in training)"
+                  if tiny else
+                  f"Model: `{res['preset']}` ({res['parameters'] / 1e6:.1f}M parameters), the instruct model as it is: "
+                  f"no SFT, prompts through its own chat template. Held-out: {res['eval_rows']} word problems of "
+                  f"difficulty {res.get('difficulty')} (number tuples never seen in training, larger operands, held-out "
+                  "phrasings, names and items)")
+    L.append(f"Command: `python scripts/reproduce_e7.py{'' if tiny else ' --model real'}{' --quick' if res['quick'] else ''}"
+             f"{''.join(' --set ' + s for s in res['overrides'])}`. {model_text}. Samples: {N_SAMPLES} per problem at "
+             f"T={T:g} (the temperature GRPO samples at); every K is estimated from them.\n")
     L.append("## Result\n")
-    L.append(f"- SFT greedy accuracy **{pct(sft['greedy_accuracy'])}**; after GRPO **{pct(grpo['greedy_accuracy'])}** "
+    L.append(f"- {S} greedy accuracy **{pct(sft['greedy_accuracy'])}**; after GRPO **{pct(grpo['greedy_accuracy'])}** "
              f"({'+' if gain >= 0 else ''}{100 * gain:.1f} points) after {len(g['steps'])} GRPO steps "
              f"({sec['grpo'] / 60:.1f} min).")
+    if not tiny:
+        L.append(f"- Target (issue: GRPO raises held-out greedy accuracy by at least 10 points over the instruct model): "
+                 f"**{'met' if gain >= 0.10 else 'not met'}** ({'+' if gain >= 0 else ''}{100 * gain:.1f} points on "
+                 f"{res['eval_rows']} problems; one problem is {100 / res['eval_rows']:.1f} points).")
     if gain <= 0:
-        L.append("- GRPO did not improve greedy accuracy here, so no sampling budget of the SFT model is needed to "
+        L.append(f"- GRPO did not improve greedy accuracy here, so no sampling budget of the {S} model is needed to "
                  "match it.")
     elif c["sft_oracle_k_matching_grpo_greedy"] is not None:
-        L.append(f"- The SFT model needs about **K = {c['sft_oracle_k_matching_grpo_greedy']:.1f}** samples with a "
+        L.append(f"- The {S} model needs about **K = {c['sft_oracle_k_matching_grpo_greedy']:.1f}** samples with a "
                  f"verifier oracle picking a right one to match one greedy answer of the GRPO model.")
     else:
-        L.append(f"- Even an oracle best-of-{N_SAMPLES} of the SFT model ({pct(sft['pass_at_k'][16])}) stays below "
+        L.append(f"- Even an oracle best-of-{N_SAMPLES} of the {S} model ({pct(sft['pass_at_k'][16])}) stays below "
                  f"one greedy answer of the GRPO model.")
-    L.append(f"- Without an oracle, the SFT model's best majority vote is maj@{c['sft_best_majority']['k']} = "
+    L.append(f"- Without an oracle, the {S} model's best majority vote is maj@{c['sft_best_majority']['k']} = "
              f"{pct(c['sft_best_majority']['accuracy'])}, at {c['sft_best_majority']['k']} samples per problem.")
     bm = c["sft_best_majority"]
     if bm["break_even_problems_tokens"] and grpo["greedy_accuracy"] >= bm["accuracy"]:
         L.append(f"- Compute against that realistic baseline: GRPO training sampled {g['sampled_tokens']:,.0f} tokens "
-                 f"in {sec['grpo']:.0f} s; SFT maj@{bm['k']} generates {bm['extra_tokens_per_problem_vs_grpo_greedy']:.0f} "
+                 f"in {sec['grpo']:.0f} s; {S} maj@{bm['k']} generates {bm['extra_tokens_per_problem_vs_grpo_greedy']:.0f} "
                  f"more tokens per problem than one greedy GRPO answer, so GRPO's training pays for itself after about "
                  f"{bm['break_even_problems_tokens']:,.0f} problems in generated tokens "
                  + (f"({bm['break_even_problems_seconds']:,.0f} problems in measured seconds)"
@@ -501,19 +566,19 @@ def report_md(res: dict) -> str:
                  f"cheaper in generated tokens after about {c['break_even_problems_tokens']:,.0f} problems.")
     L.append("")
     L.append("## Accuracy at matched inference compute (held-out)\n")
-    L.append("| samples / problem | SFT | SFT + GRPO | SFT oracle pass@K | GRPO oracle pass@K |")
+    L.append(f"| samples / problem | {S} | {S} + GRPO | {S} oracle pass@K | GRPO oracle pass@K |")
     L.append("|---|---|---|---|---|")
     L.append(f"| 1 (greedy) | {pct(sft['greedy_accuracy'])} | {pct(grpo['greedy_accuracy'])} | | |")
     for k in KS:
-        label = f"{k} (T={SAMPLE_TEMPERATURE:g}, " + ("one sample)" if k == 1 else "majority vote)")
+        label = f"{k} (T={T:g}, " + ("one sample)" if k == 1 else "majority vote)")
         L.append(f"| {label} | {pct(sft['maj_at_k'][k])} | {pct(grpo['maj_at_k'][k])} | {pct(sft['pass_at_k'][k])} | "
                  f"{pct(grpo['pass_at_k'][k])} |")
     L.append("")
     L.append("pass@K needs the reference answer at inference time (a verifier oracle); majority vote does not. "
-             f"Fraction of problems with some right answer among {N_SAMPLES} samples: SFT "
+             f"Fraction of problems with some right answer among {N_SAMPLES} samples: {S} "
              f"{pct(sft['frac_some_right_of_16'])}, GRPO {pct(grpo['frac_some_right_of_16'])}; all {N_SAMPLES} right: "
-             f"SFT {pct(sft['frac_all_right_of_16'])}, GRPO {pct(grpo['frac_all_right_of_16'])}. Problems whose groups of 8 "
-             f"are mixed (GRPO's learning signal): SFT {pct(sft['frac_mixed_groups_of_8'])}, GRPO "
+             f"{S} {pct(sft['frac_all_right_of_16'])}, GRPO {pct(grpo['frac_all_right_of_16'])}. Problems whose groups of 8 "
+             f"are mixed (GRPO's learning signal): {S} {pct(sft['frac_mixed_groups_of_8'])}, GRPO "
              f"{pct(grpo['frac_mixed_groups_of_8'])}.\n")
     L.append("![accuracy curve](e7_accuracy_curve.png)\n")
     L.append("![inference scaling](e7_inference_scaling.png)\n")
@@ -521,14 +586,16 @@ def report_md(res: dict) -> str:
     L.append("| route | accuracy | training (s) | training tokens | inference samples / problem | inference tokens / problem | inference s / problem |")
     L.append("|---|---|---|---|---|---|---|")
     for r in c["routes"]:
-        tt = f"{r['train_tokens']:,.0f} SFT" + (f" + {r['grpo_sampled_tokens']:,.0f} GRPO-sampled"
+        tt = (f"{r['train_tokens']:,.0f} SFT" if mode.runs_sft else "none") + (f" + {r['grpo_sampled_tokens']:,.0f} GRPO-sampled"
                                                   if r.get("grpo_sampled_tokens") else "")
         L.append(f"| {r['route']} | {pct(r['accuracy'])} | {r['train_seconds']:.0f} | {tt} | "
                  f"{r['inference_samples_per_problem']} | {r['inference_tokens_per_problem']:.0f} | "
                  f"{r['inference_seconds_per_problem'] * 1000:.1f} ms |")
     L.append("")
-    L.append(f"SFT processed {res['sft_cost']['sequences']:,} training sequences ({res['sft_cost']['steps']} steps x "
-             f"batch {res['sft_cost']['batch_size']}, {res['sft_cost']['mean_row_tokens']:.0f} tokens each). GRPO sampled "
+    L.append((f"SFT processed {res['sft_cost']['sequences']:,} training sequences ({res['sft_cost']['steps']} steps x "
+              f"batch {res['sft_cost']['batch_size']}, {res['sft_cost']['mean_row_tokens']:.0f} tokens each). "
+              if mode.runs_sft else "The instruct model had no training here (its own pre- and post-training is not "
+              "counted). ") + f"GRPO sampled "
              f"{g['sampled_sequences']:,.0f} completions ({g['prompts_per_step']} prompts x {g['group_size']} per step, plus "
              "the resampling rounds of dynamic sampling) "
              f"and trained on {g['trained_sequences']:,.0f} sequences (zero-variance groups are skipped). Inference "
@@ -538,31 +605,59 @@ def report_md(res: dict) -> str:
     first_len = g["train_length"][0] if g["train_length"] else float("nan")
     last_len = sum(g["train_length"][-5:]) / max(1, len(g["train_length"][-5:])) if g["train_length"] else float("nan")
     L.append(f"- Training samples: {first_len:.1f} tokens at the first step, {last_len:.1f} over the last 5 steps. "
-             f"Held-out greedy: SFT {sft['greedy_tokens_per_problem']:.1f} tokens, GRPO "
-             f"{grpo['greedy_tokens_per_problem']:.1f}; truncated at the budget: SFT {pct(sft['greedy_truncated'])}, "
+             f"Held-out greedy: {S} {sft['greedy_tokens_per_problem']:.1f} tokens, GRPO "
+             f"{grpo['greedy_tokens_per_problem']:.1f}; truncated at the budget: {S} {pct(sft['greedy_truncated'])}, "
              f"GRPO {pct(grpo['greedy_truncated'])}.")
-    for who, m in (("SFT", sft), ("SFT + GRPO", grpo)):
+    labels = dict(mode.behaviours)
+    for who, m in ((S, sft), (f"{S} + GRPO", grpo)):
         bg, bs = m["behaviour_greedy"], m["behaviour_samples"]
-        L.append(f"- {who}: works the problem in columns in {pct(bg['frac_worked'])} of greedy answers and "
-                 f"{pct(bs['frac_worked'])} of samples (the rest state an answer directly); "
-                 f"'check' in {pct(bg['frac_verification'])} of greedy answers and "
-                 f"{pct(bs['frac_verification'])} of samples; self-correction words in "
-                 f"{pct(bg['frac_self_correction'])} / {pct(bs['frac_self_correction'])}.")
+        L.append(f"- {who}: " + "; ".join(f"{label} in {pct(bg[k])} of greedy answers and {pct(bs[k])} of samples"
+                                          for k, label in mode.behaviours) + ".")
     b = res["behaviour_over_training"]
     if b["steps"]:
-        L.append(f"- In GRPO's saved training rollouts (steps {b['steps'][0]}..{b['steps'][-1]}): worked in columns "
-                 f"{pct(b['frac_worked'][0])} -> {pct(b['frac_worked'][-1])} of samples; 'check' in "
-                 f"{pct(b['frac_verification'][0])} -> {pct(b['frac_verification'][-1])} of samples; self-correction "
-                 f"words {pct(b['frac_self_correction'][0])} -> {pct(b['frac_self_correction'][-1])}.")
+        L.append(f"- In GRPO's saved training rollouts (steps {b['steps'][0]}..{b['steps'][-1]}): "
+                 + "; ".join(f"{label} {pct(b[k][0])} -> {pct(b[k][-1])} of samples" for k, label in labels.items()) + ".")
     L.append("")
-    L.append("What these phrases are: the SFT data has an optional line `Check: 66+19=85` (the inverse of the last "
-             "operation, numbers copied from the line above) in 25% of training solutions and never in held-out "
-             "solutions; it cannot change the answer, so a change in its frequency under RL is drift or a side effect "
-             "of length, not learned verification. No self-correction word is in the SFT data: a tiny model trained "
-             "from scratch has no such words to discover, unlike the pretrained models in which R1-style 'aha' "
-             "behaviour was reported.\n")
+    if tiny:
+        L.append("What these phrases are: the SFT data has an optional line `Check: 66+19=85` (the inverse of the last "
+                 "operation, numbers copied from the line above) in 25% of training solutions and never in held-out "
+                 "solutions; it cannot change the answer, so a change in its frequency under RL is drift or a side effect "
+                 "of length, not learned verification. No self-correction word is in the SFT data: a tiny model trained "
+                 "from scratch has no such words to discover, unlike the pretrained models in which R1-style 'aha' "
+                 "behaviour was reported.\n")
+    else:
+        L.append("What is counted (`posttrain.tasks.wordmath.behaviour_counts`, case-insensitive whole words): "
+                 "verification = " + ", ".join(f"'{p}'" for p in res.get("phrases", {}).get("verification", []))
+                 + "; self-correction = " + ", ".join(f"'{p}'" for p in res.get("phrases", {}).get("self_correction", []))
+                 + "; a re-computation line is an equation (`a + b = c`) whose left side already appeared earlier in the "
+                 "same answer.\n")
+        for who, m in ((S, sft), (f"{S} + GRPO", grpo)):
+            for ex in m.get("sample_examples", [])[:2]:
+                L.append(f"{who}, a sample with a counted phrase ({'right' if ex['right'] else 'wrong'}):\n\n"
+                         f"```\n{ex['prompt']}\n{ex['sample'][:600]}\n```\n")
     L.append("![length](e7_length.png)\n")
     L.append("![behaviour](e7_behaviour.png)\n")
+    if tiny:
+        _where_the_gain_comes_from(L, res, sft, grpo)
+    L.append("## Why held-out greedy answers fail\n")
+    for who, m in ((S, sft), (f"{S} + GRPO", grpo)):
+        L.append(f"- {who}: " + ", ".join(f"{k} {v}" for k, v in m["greedy_reasons"].items()))
+    L.append("")
+    L.append(f"## Examples (held-out, greedy{', a direct-style question' if tiny else ''})\n")
+    for who, m in ((S, sft), (f"{S} + GRPO", grpo)):
+        if not m["examples"]:
+            continue
+        ex = m["examples"][0]
+        L.append(f"{who} ({'right' if ex['right'] else 'wrong'}):\n\n```\n{ex['prompt']}{'' if tiny else chr(10)}"
+                 f"{ex['greedy']}\n```\n")
+    L.append("## Settings\n")
+    L.append(f"GRPO config (resolved): `{json.dumps({k: v for k, v in g['config'].items() if k in ('prompts_per_step', 'group_size', 'max_steps', 'lr', 'beta', 'estimator', 'std_scale', 'aggregation', 'zero_variance', 'mu', 'max_new_tokens', 'temperature', 'clip_eps', 'clip_eps_high')})}`. "
+             f"Run directories: `{res['runs_dir']}`. Every number above and every plotted series is in `e7.json`.\n")
+    return "\n".join(L)
+
+
+def _where_the_gain_comes_from(L: list[str], res: dict, sft: dict, grpo: dict) -> None:
+    """tiny-math only: accuracy by answer style (the recipe's two styles are where its room for RL is)."""
     L.append("## Where the gain comes from\n")
     L.append(f"SFT data answers the question \"How many ... are there now?\" without working in "
              f"{res['direct_prob']:.0%} of its training rows (all other phrasings are worked). Held-out greedy answers:\n")
@@ -577,29 +672,20 @@ def report_md(res: dict) -> str:
              + ", ".join(f"{k} {pct(v['worked_accuracy'])}" for k, v in sft["greedy_by_question"].items())
              + "; GRPO " + ", ".join(f"{k} {pct(v['worked_accuracy'])}" for k, v in grpo["greedy_by_question"].items())
              + ".\n")
-    L.append("## Why held-out greedy answers fail\n")
-    for who, m in (("SFT", sft), ("SFT + GRPO", grpo)):
-        L.append(f"- {who}: " + ", ".join(f"{k} {v}" for k, v in m["greedy_reasons"].items()))
-    L.append("")
-    L.append("## Examples (held-out, greedy, a direct-style question)\n")
-    for who, m in (("SFT", sft), ("SFT + GRPO", grpo)):
-        if not m["examples"]:
-            continue
-        ex = m["examples"][0]
-        L.append(f"{who} ({'right' if ex['right'] else 'wrong'}):\n\n```\n{ex['prompt']}{ex['greedy']}\n```\n")
-    L.append("## Settings\n")
-    L.append(f"GRPO config (resolved): `{json.dumps({k: v for k, v in g['config'].items() if k in ('prompts_per_step', 'group_size', 'max_steps', 'lr', 'beta', 'estimator', 'std_scale', 'aggregation', 'zero_variance', 'mu', 'max_new_tokens', 'temperature', 'clip_eps', 'clip_eps_high')})}`. "
-             f"Run directories: `{res['runs_dir']}`. Every number above and every plotted series is in `e7.json`.\n")
-    return "\n".join(L)
 
 
 # ----------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="a smoke run: short SFT and GRPO, 40 held-out problems")
-    ap.add_argument("--out", type=Path, default=None, help="output directory (default runs/e7 or runs/e7-quick)")
+    ap.add_argument("--model", choices=sorted(MODES), default="tiny",
+                    help="tiny: tiny-math on a model trained from scratch (SFT first); real: smol-math on "
+                         "SmolLM2-135M-Instruct as it is (fetch it first: posttrain models fetch --help)")
+    ap.add_argument("--quick", action="store_true", help="a smoke run: short SFT and GRPO, fewer held-out problems")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="output directory (default runs/e7[-real][-quick])")
     ap.add_argument("--threads", type=int, default=0, help="torch threads per stage and here (0: torch's default)")
-    ap.add_argument("--eval-rows", type=int, default=None, help="held-out problems for the baselines (default 200; quick 40)")
+    ap.add_argument("--eval-rows", type=int, default=None,
+                    help="held-out problems for the baselines (default: tiny 200, quick 40; real 150, quick 48)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.KEY=VALUE",
                     help="config override passed to both stages, e.g. grpo.max_steps=100 (repeatable)")
     ap.add_argument("--fresh", action="store_true", help="redo the SFT and GRPO runs even when they exist in --out")
@@ -607,7 +693,9 @@ def main(argv: list[str] | None = None) -> int:
     for o in args.overrides:
         if "=" not in o or "." not in o.split("=", 1)[0]:
             raise SystemExit(f"reproduce_e7: --set {o!r} must look like stage.key=value (e.g. grpo.max_steps=100)")
-    out = (args.out or ROOT / "runs" / ("e7-quick" if args.quick else "e7")).resolve()
+    mode = MODES[args.model]
+    out = (args.out or ROOT / "runs" / ("e7" + ("-real" if mode.name == "real" else "")
+                                         + ("-quick" if args.quick else ""))).resolve()
     if args.fresh and out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -625,44 +713,58 @@ def main(argv: list[str] | None = None) -> int:
     from posttrain.cli import STAGES
     from posttrain.config import resolve
     from posttrain.models import count_parameters, load_model
+    from posttrain.models import is_model_dir
     from posttrain.tasks import load_split
-    from posttrain.tasks import math as task_module
     from verifiers.runner import VerifierPool
 
+    task_module = importlib.import_module(mode.task)
     t_all = time.time()
-    overrides = (QUICK if args.quick else []) + args.overrides
+    overrides = (list(mode.quick) if args.quick else []) + args.overrides
     runs = out / "runs"
-    run_root = runs / RECIPE
+    run_root = runs / mode.recipe
     timing_file = out / "seconds.json"
     seconds = json.loads(timing_file.read_text()) if timing_file.is_file() else {}
     reused = []
+    res_eval = resolve(mode.recipe, "grpo", STAGES["grpo"].load()[0], [f"run.output_dir={runs}", *overrides])
 
-    # 1. SFT
-    if (run_root / "sft" / "final").is_dir() and "sft" in seconds:
+    # 1. SFT (tiny), or the instruct model as it is (real)
+    if not mode.runs_sft:
+        start_dir = Path(res_eval.model.path)
+        if not is_model_dir(start_dir):
+            raise SystemExit(f"reproduce_e7: model.path {str(start_dir)!r} is not a model directory; fetch the model "
+                             f"first: posttrain models fetch smollm2-135m-instruct {start_dir}")
+        if seconds.get("start") != str(start_dir.resolve()):  # another model: nothing of the old runs applies
+            seconds = {"start": str(start_dir.resolve())}
+            shutil.rmtree(run_root / "grpo", ignore_errors=True)
+        seconds["sft"] = 0.0
+        timing_file.write_text(json.dumps(seconds))
+    elif (run_root / "sft" / "final").is_dir() and "sft" in seconds:
+        start_dir = run_root / "sft" / "final"
         print(f"[e7] reusing the SFT model in {run_root / 'sft'}")
         reused.append("sft")
     else:
-        seconds["sft"] = posttrain("sft", runs, args.threads, out / "logs" / "sft.log", overrides)
+        start_dir = run_root / "sft" / "final"
+        seconds["sft"] = posttrain("sft", mode.recipe, runs, args.threads, out / "logs" / "sft.log", overrides)
         seconds.pop("grpo", None)  # a new SFT model invalidates any GRPO run on the old one
         shutil.rmtree(run_root / "grpo", ignore_errors=True)
         timing_file.write_text(json.dumps(seconds))
 
-    res_eval = resolve(RECIPE, "grpo", STAGES["grpo"].load()[0], [f"run.output_dir={runs}", *overrides])
-    n_rows = args.eval_rows or (40 if args.quick else 200)
+    n_rows = args.eval_rows or mode.default_eval_rows[args.quick]
     rows = load_split(res_eval.task, "eval")
     if len(rows) < n_rows:
         res_eval.task.n_eval = n_rows
         rows = load_split(res_eval.task, "eval")
     rows = rows[:n_rows]
     max_new = res_eval.stage_cfg.max_new_tokens
+    temperature = res_eval.stage_cfg.temperature
     pool = VerifierPool(workers=1)
     t_eval = 0.0
     try:
         # 2. baselines without RL
         t0 = time.time()
-        sft_eval = evaluate_model(run_root / "sft" / "final", rows, max_new, pool)
+        sft_eval = evaluate_model(start_dir, rows, max_new, pool, mode=mode, temperature=temperature)
         t_eval += time.time() - t0
-        print(f"[e7] SFT: greedy {sft_eval['greedy_accuracy']:.3f}, pass@K {sft_eval['pass_at_k']}, "
+        print(f"[e7] {mode.start}: greedy {sft_eval['greedy_accuracy']:.3f}, pass@K {sft_eval['pass_at_k']}, "
               f"maj@K {sft_eval['maj_at_k']} ({time.time() - t0:.0f}s)", flush=True)
 
         # 3. GRPO
@@ -673,13 +775,13 @@ def main(argv: list[str] | None = None) -> int:
         else:
             max_steps = res_eval.stage_cfg.max_steps
             every = max(1, max_steps // 10)
-            seconds["grpo"] = posttrain("grpo", runs, args.threads, out / "logs" / "grpo.log",
+            seconds["grpo"] = posttrain("grpo", mode.recipe, runs, args.threads, out / "logs" / "grpo.log",
                                         overrides + [f"grpo.save_rollouts_every={every}"])
             timing_file.write_text(json.dumps(seconds))
 
         # 4. the GRPO model, behaviour, compute
         t0 = time.time()
-        grpo_eval = evaluate_model(grpo_dir / "final", rows, max_new, pool)
+        grpo_eval = evaluate_model(grpo_dir / "final", rows, max_new, pool, mode=mode, temperature=temperature)
         t_eval += time.time() - t0
         print(f"[e7] GRPO: greedy {grpo_eval['greedy_accuracy']:.3f}, pass@K {grpo_eval['pass_at_k']}, "
               f"maj@K {grpo_eval['maj_at_k']} ({time.time() - t0:.0f}s)", flush=True)
@@ -687,14 +789,18 @@ def main(argv: list[str] | None = None) -> int:
         pool.close()
 
     res = {
+        "mode": mode.name, "start_label": mode.start, "temperature": temperature,
         "quick": args.quick, "overrides": args.overrides, "threads": args.threads, "eval_rows": len(rows),
-        "preset": res_eval.model.path, "parameters": count_parameters(load_model(run_root / "sft" / "final")),
-        "runs_dir": str(runs), "reused": reused, "direct_prob": task_module.DIRECT_PROB,
+        "preset": res_eval.model.path, "parameters": count_parameters(load_model(start_dir)),
+        "difficulty": res_eval.task.difficulty or getattr(task_module, "DEFAULT_DIFFICULTY", None),
+        "phrases": {"verification": list(task_module.VERIFICATION_PHRASES),
+                    "self_correction": list(task_module.SELF_CORRECTION_PHRASES)},
+        "runs_dir": str(runs), "reused": reused, "direct_prob": getattr(task_module, "DIRECT_PROB", None),
         "seconds": {"sft": seconds["sft"], "grpo": seconds["grpo"], "eval": t_eval},
         "eval": {"sft": sft_eval, "grpo": grpo_eval},
         "grpo": grpo_curves(grpo_dir),
-        "behaviour_over_training": rollout_behaviour(grpo_dir),
-        "sft_cost": sft_cost(run_root / "sft", load_split(res_eval.task, "train"), run_root / "sft" / "final"),
+        "behaviour_over_training": rollout_behaviour(grpo_dir, mode),
+        "sft_cost": sft_cost(run_root / "sft", load_split(res_eval.task, "train"), start_dir),
         "grpo_eval_json": json.loads((grpo_dir / "eval.json").read_text()) if (grpo_dir / "eval.json").is_file() else {},
     }
     res["compute"] = compute_table(res)
@@ -702,7 +808,7 @@ def main(argv: list[str] | None = None) -> int:
     res["runtime_s"] = time.time() - t_all + sum(seconds[k] for k in ("sft", "grpo") if k in reused)
     (out / "e7.json").write_text(json.dumps(res, indent=2, default=str))
     (out / "report.md").write_text(report_md(res))
-    print(f"[e7] SFT greedy {sft_eval['greedy_accuracy']:.3f} -> GRPO greedy {grpo_eval['greedy_accuracy']:.3f}; "
+    print(f"[e7] {mode.start} greedy {sft_eval['greedy_accuracy']:.3f} -> GRPO greedy {grpo_eval['greedy_accuracy']:.3f}; "
           f"report {out / 'report.md'} ({res['runtime_s'] / 60:.1f} min)")
     return 0
 

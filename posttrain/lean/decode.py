@@ -30,7 +30,15 @@ It exposes the calls the engine's loop uses (as `posttrain.rollout.backends.HFFo
 - o_proj and down_proj accumulate into the residual stream in place (`addmm_`).
 - Finished rows are dropped by moving the last live rows into their slots ("holes"), so a
   compaction copies only as many cache rows as have finished.
-Agreement with the HF forward: fp32 logits equal within 1e-4 (tested: prefill and decode, left-padded).
+- Compressed weights (`weight_dtype=torch.bfloat16`, the rollout's `rollout.dtype`): the fused matrices
+  (q/k/v, o, gate/up, down and the head) are stored in bf16 and every matmul runs in bf16 (input rounded
+  to bf16, fp32 accumulation inside the kernel, output rounded to bf16, then back to fp32): half the
+  weight bytes streamed per decode step and the CPU's native bf16 dot products (AVX512-BF16, AMX) or the
+  GPU's. Everything else stays fp32: the residual stream, norms, RoPE, attention and its KV cache, and
+  the logits the sampler reads (bf16-rounded: ~3 significant digits). Sampling then follows a slightly
+  different distribution from the fp32 policy; the trainers log the gap (`mismatch/kl`).
+Agreement with the HF forward: fp32 logits equal within 1e-4 (tested: prefill and decode, left-padded);
+bf16 weights: logits within bf16 rounding (tested against the fp32 path).
 Not thread-safe: one `generate` at a time per model.
 """
 from __future__ import annotations
@@ -53,13 +61,14 @@ class LeanLlama:
     PREFILL_MAX_SPAN = 64  # prompts per prefill chunk, at most
     PREFILL_MAX_MASK = 1 << 22  # bound on chunk * Tp * Tp attention-mask entries
 
-    def __init__(self, model):
+    def __init__(self, model, weight_dtype: torch.dtype | None = None):
         if hasattr(model, "peft_config"):  # LoRA: base + adapter deltas fused below (`_weight`)
             model = model.get_base_model()
         cfg = model.config
         base = model.model
         self.device = _weight(model.lm_head).device
         self.dtype = _weight(model.lm_head).dtype
+        self.weight_dtype = wdt = weight_dtype or self.dtype  # dtype of the fused matrices
         att0 = base.layers[0].self_attn
         self.D = D = getattr(att0, "head_dim", None) or cfg.hidden_size // cfg.num_attention_heads
         self.H = H = cfg.num_attention_heads
@@ -83,7 +92,7 @@ class LeanLlama:
             return torch.tensor(math.sqrt(d * float(norm.variance_epsilon)), device=self.device, dtype=self.dtype)
 
         def buf(rows, cols_):
-            return torch.empty(rows, cols_, device=self.device, dtype=self.dtype)
+            return torch.empty(rows, cols_, device=self.device, dtype=wdt)
 
         NH = H + 2 * Hkv
         self.layers = []
@@ -129,7 +138,7 @@ class LeanLlama:
                 row_scale[:H * D] = sc
                 fused[2] = (torch.cat([bias(a.q_proj), bias(a.k_proj), bias(a.v_proj)]).float()
                             .index_select(0, self._qkv_rows) * row_scale).to(self.dtype)
-            fused[3].copy_(_weight(a.o_proj).t())
+            fused[3].copy_(_weight(a.o_proj).t())  # (copy_ and mul(out=) round to a bf16 buffer)
             fused[4] = bias(a.o_proj)
             gu_w, inter = fused[6], fused[8]
             torch.mul(_weight(m.gate_proj).float().t(), g2[:, None], out=gu_w[:, :inter])
@@ -149,7 +158,17 @@ class LeanLlama:
 
     @staticmethod
     def _lin(x, w, b):
+        if w.dtype != x.dtype:  # compressed weights: a bf16 matmul, fp32 out
+            y = (x.to(w.dtype) @ w).to(x.dtype)
+            return y if b is None else y.add_(b)
         return x @ w if b is None else torch.addmm(b, x, w)
+
+    @staticmethod
+    def _acc(x, a, w):
+        """x += a @ w in place (the residual stream; o_proj and down_proj)."""
+        if w.dtype != x.dtype:
+            return x.add_(a.to(w.dtype) @ w)
+        return x.addmm_(a, w)
 
     def _rope_table(self, max_pos: int) -> torch.Tensor:
         """(max_pos, D/2) complex: attention_scaling * (cos + i sin), computed as LlamaRotaryEmbedding does."""
@@ -158,7 +177,7 @@ class LeanLlama:
     def _mlp(self, x, layer):  # x (N, d) -> x + mlp(norm(x))
         _, _, _, _, _, c2, gu_w, gu_b, inter, down_w, down_b = layer
         gu = self._lin(self._norm(x, c2), gu_w, gu_b)  # (N, 2I)
-        x = torch.addmm(x, F.silu(gu[:, :inter]).mul_(gu[:, inter:]), down_w)  # (N, d)
+        x = self._acc(x, F.silu(gu[:, :inter]).mul_(gu[:, inter:]), down_w)  # (N, d)
         return x if down_b is None else x + down_b
 
     def _logits(self, x):  # (N, d) -> (N, V)
@@ -268,7 +287,7 @@ class LeanLlama:
             else:
                 bias_l = attn_bias
             a = self._attend(q, k, v, bias_l)  # (U, H, Tq, D)
-            x = torch.addmm(x, a.transpose(1, 2).reshape(x.shape[0], H * D), o_w)
+            x = self._acc(x.clone() if last else x, a.transpose(1, 2).reshape(x.shape[0], H * D), o_w)
             if o_b is not None:
                 x = x + o_b
             x = self._mlp(x, layer)
@@ -299,22 +318,23 @@ class LeanLlama:
         split = (H, Hkv, Hkv)
         norm, hypot, bmm, softmax, mul, silu = torch.linalg.vector_norm, torch.hypot, torch.bmm, torch.softmax, \
             torch.mul, F.silu
+        lin, acc = self._lin, self._acc
         for layer, (kc, vc, kT, vv) in zip(self.layers, self._views):
             c1, qkv_w, qkv_b, o_w, o_b, c2, gu_w, gu_b, inter, down_w, down_b = layer
             h = x / hypot(norm(x, 2, -1, True), c1)
-            qkv = h @ qkv_w if qkv_b is None else torch.addmm(qkv_b, h, qkv_w)  # (B, NH*D)
+            qkv = lin(h, qkv_w, qkv_b)  # (B, NH*D)
             zq, zk, zv = torch.view_as_complex(qkv.view(B, NH, D // 2, 2)).split_with_sizes(split, 1)  # (B, ., D/2)
             q = torch.view_as_real(zq * cis).view(BH, rep, D)  # roped q (softmax scale folded in)
             mul(zk, cis, out=kc[:, :, col])  # roped k straight into the cache
             vc[:, :, col] = zv
             s = softmax(torch.baddbmm(bias, q, kT[:, :, :T]), -1)  # (B*Hkv, rep, T): scores + key mask
-            x.addmm_(bmm(s, vv[:, :T]).view(B, HD), o_w)  # residual += attn @ Wo, in place
+            acc(x, bmm(s, vv[:, :T]).view(B, HD), o_w)  # residual += attn @ Wo, in place
             if o_b is not None:
                 x = x + o_b
             h = x / hypot(norm(x, 2, -1, True), c2)
-            gu = h @ gu_w if gu_b is None else torch.addmm(gu_b, h, gu_w)  # (B, 2I)
+            gu = lin(h, gu_w, gu_b)  # (B, 2I)
             g, u = gu.split_with_sizes((inter, inter), 1)  # (B, I) each
-            x.addmm_(silu(g).mul_(u), down_w)
+            acc(x, silu(g).mul_(u), down_w)
             if down_b is not None:
                 x = x + down_b
         return self._logits(x)  # (B, V)

@@ -21,21 +21,26 @@ log = logging.getLogger(__name__)
 
 DEFAULT_MAX_BATCH_TOKENS = 16384
 BACKENDS = ("auto", "lean", "hf", "vllm")
-_defaults: dict = {"backend": "auto", "vllm": {}}
+_defaults: dict = {"backend": "auto", "vllm": {}, "dtype": "float32"}
+DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
 
-def configure(backend: str = "auto", **vllm_options) -> None:
+def configure(backend: str = "auto", dtype: str = "float32", **vllm_options) -> None:
     """Set the process-wide rollout backend that `generate(..., backend=None)` uses (every trainer, preference
     sampling and evaluation call it so): the CLI calls this once per command with the recipe's `rollout:` section
     (`configure(**asdict(res.rollout))`). `vllm_options`: the `vllm_*` fields of config.RolloutConfig.
-    backend=vllm checks here, before any model loads, that vLLM is importable and a CUDA GPU is visible."""
+    `dtype`: the lean engine's weight dtype (`rollout.dtype`: bfloat16 runs its matmuls on bf16 copies of the
+    weights; see posttrain.lean.decode). backend=vllm checks here, before any model loads, that vLLM is importable and a CUDA GPU is visible."""
     if backend not in BACKENDS:
         raise ValueError(f"rollout backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if dtype not in DTYPES:
+        raise ValueError(f"rollout dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
     if backend == "vllm":
         from .vllm_backend import require_vllm
 
         require_vllm()
     _defaults["backend"] = backend
+    _defaults["dtype"] = dtype
     _defaults["vllm"] = {k.removeprefix("vllm_"): v for k, v in vllm_options.items()}
 
 
@@ -53,34 +58,39 @@ def context_length(model) -> int | None:
 _lean_cache: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
-def select_backend(model, max_len: int = 0, backend: str = "auto"):
+def select_backend(model, max_len: int = 0, backend: str = "auto", dtype: str | None = None):
     """(forward object, one-line reason): "lean" when supported, else the HF forward.
 
     The lean path's fused weights are cached per model and rewritten when any parameter changed since
-    (tensor version counters), so a training step between two calls is always seen."""
+    (tensor version counters), so a training step between two calls is always seen. `dtype`: the lean
+    weights' dtype (None: `configure`'s, float32 by default); the HF forward runs the model as it is."""
     if backend not in ("auto", "lean", "hf"):
         raise ValueError(f"rollout backend must be 'auto', 'lean' or 'hf', got {backend!r}")
+    dtype = dtype or _defaults["dtype"]
+    if dtype not in DTYPES:
+        raise ValueError(f"rollout dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
+    compressed = "" if dtype == "float32" else f"; rollout.dtype={dtype} applies to the lean engine only"
     if backend == "hf":
-        return HFForward(model), "HF forward (requested)"
+        return HFForward(model), f"HF forward (requested{compressed})"
     inner = unwrap_model(model)
     ok, why = lean_support(inner, max_len, mode="decode")
     if ok:
         sig = weights_signature(inner)
         hit = _lean_cache.get(inner)
-        if hit is None or hit[0] != sig:
+        if hit is None or hit[0] != sig or hit[3] != dtype:
             layout = tuple((p.shape, p.dtype, p.device) for p in inner.parameters())
             lean = hit[1] if hit is not None else None
             with torch.no_grad():
-                if lean is not None and hit[2] == layout:
+                if lean is not None and hit[2] == layout and hit[3] == dtype:
                     lean.load(inner)  # same parameter shapes, dtypes and devices: refresh in place
                 else:
-                    lean = LeanLlama(inner)
-            hit = (sig, lean, layout)
+                    lean = LeanLlama(inner, weight_dtype=None if dtype == "float32" else DTYPES[dtype])
+            hit = (sig, lean, layout, dtype)
             _lean_cache[inner] = hit
-        return hit[1], why
+        return hit[1], why + ("" if dtype == "float32" else f" (weights {dtype})")
     if backend == "lean":
         raise ValueError(f"rollout backend 'lean' cannot run this model: {why}; use backend='auto' or 'hf'")
-    return HFForward(model), f"HF forward ({why})"
+    return HFForward(model), f"HF forward ({why}{compressed})"
 
 
 def _tokenize(tokenizer, prompts) -> tuple[list[list[int]], list[str | None]]:

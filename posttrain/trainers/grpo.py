@@ -298,8 +298,10 @@ def loss_rows(cfg: GRPOConfig, sb: StepBatch, accelerator, pad_id: int, old_mode
 
 
 def grpo_loss(cfg: GRPOConfig, model, mb: dict[str, torch.Tensor], scale: float,
-              with_entropy: bool) -> tuple[torch.Tensor, dict[str, float]]:
-    """The GRPO loss of one micro-batch (policy term + beta * KL term, same aggregation), times `scale`."""
+              with_entropy: bool, mismatch: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
+    """The GRPO loss of one micro-batch (policy term + beta * KL term, same aggregation), times `scale`.
+    `mismatch`: also the sampler-trainer gap `mismatch/kl` (old_logps are the sampler's and the weights are the
+    ones it sampled with: the first minibatch of the first pass)."""
     loss_mask = mb["loss_mask"]
     logps, entropy = sequence_logprobs(model, mb["input_ids"], mb["attention_mask"], loss_mask,
                                        temperature=cfg.temperature, return_entropy=with_entropy,
@@ -315,24 +317,27 @@ def grpo_loss(cfg: GRPOConfig, model, mb: dict[str, torch.Tensor], scale: float,
         m["kl"] = float(masked_mean(kl.detach(), loss_mask.bool()))
     if with_entropy:
         m["entropy"] = float(masked_mean(entropy.detach(), loss_mask.bool()))
+    if mismatch:
+        m["mismatch/kl"] = float(masked_mean(kl_penalty(mb["old_logps"], logps.detach(), "k3"), loss_mask.bool()))
     return loss * scale, m
 
 
-def micro_batch_loss(cfg: GRPOConfig, model, world: int, with_entropy: bool,
+def micro_batch_loss(cfg: GRPOConfig, model, world: int, with_entropy: bool, mismatch: bool,
                      micro_batch: tuple[dict, float, float]) -> tuple[torch.Tensor, dict[str, float]]:
     """`grpo_loss` of one of `sharding.micro_batches`, scaled to its loss share times W (DDP averages gradients).
     `loop.optimizer_step` weighs the token-mean metrics by the loss-token shares; the policy loss is reported as
     this micro-batch's part of the minibatch's aggregation (`policy_loss_sum`: summed over micro-batches and
     processes, it is the minibatch's policy loss)."""
     mb, share, _ = micro_batch
-    loss, m = grpo_loss(cfg, model, mb, share * world, with_entropy)
+    loss, m = grpo_loss(cfg, model, mb, share * world, with_entropy, mismatch)
     m["policy_loss_sum"] = m.pop("policy_loss") * share
     return loss, m  # a non-finite loss on any process stops every process (loop.optimizer_step)
 
 
 def update(cfg: GRPOConfig, accelerator, model, optimizer, scheduler, rows: dict[str, torch.Tensor] | None,
-           step: int, budget: int = 0) -> dict[str, float]:
-    """mu passes x minibatches optimizer updates over `rows`; the update metrics.
+           step: int, budget: int = 0, sampler_old: bool = True) -> dict[str, float]:
+    """mu passes x minibatches optimizer updates over `rows`; the update metrics. `sampler_old`: pi_old is the
+    sampler's log-probs (not recomputed), so the first minibatch also measures `mismatch/kl`.
 
     Every process holds the same rows, so the row order of each pass (seeded by step and pass) and the
     minibatches are the same everywhere; `sharding.micro_batches` gives process r rows r, r + W, ... of each."""
@@ -343,10 +348,11 @@ def update(cfg: GRPOConfig, accelerator, model, optimizer, scheduler, rows: dict
     for epoch in range(cfg.mu if len(usable) else 0):
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step * 101 + epoch)
         order = usable[torch.randperm(len(usable), generator=gen)]
-        for mb_idx in torch.tensor_split(order, min(cfg.minibatches, len(usable))):
+        for i, mb_idx in enumerate(torch.tensor_split(order, min(cfg.minibatches, len(usable)))):
             mbs = sharding.micro_batches(rows, mb_idx.to(accelerator.device), cfg.micro_batch_size, cfg.aggregation,
                                          accelerator.process_index, accelerator.num_processes, budget)
-            loss_fn = functools.partial(micro_batch_loss, cfg, model, accelerator.num_processes, epoch == 0)
+            loss_fn = functools.partial(micro_batch_loss, cfg, model, accelerator.num_processes, epoch == 0,
+                                        sampler_old and epoch == 0 and i == 0)
             out = loop.optimizer_step(accelerator, model, optimizer, scheduler, mbs, loss_fn, cfg.max_grad_norm,
                                       step + 1, weights=[tokens for _, _, tokens in mbs])
             for k, v in out.items():
@@ -446,7 +452,7 @@ def progress_line(done: int, total: int, m: dict[str, float], timing: dict[str, 
     eta = elapsed / max(1, done - start) * (total - done)
     shown = [("reward", m["reward/mean"]), ("zero_var", m["zero_var_frac"]), ("loss", m["loss"]),
              ("clip", m.get("clip_frac")), ("kl", m.get("kl")), ("entropy", m.get("entropy")),
-             ("len", m["completion/length"]), ("trunc", m["completion/truncated"])]
+             ("mismatch", m.get("mismatch/kl")), ("len", m["completion/length"]), ("trunc", m["completion/truncated"])]
     return (f"[grpo] step {done}/{total} " + " ".join(f"{k} {v:.4g}" for k, v in shown if v is not None)
             + f" | {m['time/step']:.2f}s (sample {timing['sample']:.2f}, score {timing['score']:.2f}, "
             f"train {timing['train']:.2f}), {elapsed:.0f}s elapsed, eta {eta:.0f}s")
@@ -550,7 +556,8 @@ def train(res: Resolved, ensure) -> Path:
                 rows = loss_rows(cfg, sb, accelerator, tokenizer.pad_token_id, policy if recompute_old else None,
                                  ref_model, budget)
                 # ---- update: mu passes x minibatches of clipped-ratio steps
-                m.update(update(cfg, accelerator, model, optimizer, scheduler, rows, step, budget))
+                m.update(update(cfg, accelerator, model, optimizer, scheduler, rows, step, budget,
+                                sampler_old=not recompute_old))
                 timing["train"] = time.time() - t0
                 if saving or evaluating:
                     loop.check_weights(done, model)

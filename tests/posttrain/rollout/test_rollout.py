@@ -169,6 +169,88 @@ def test_backend_selection_reasons(trained):
         select_backend(bf16, 64, "lean")
 
 
+# ------------------------------------------------------------------ bf16 rollout weights (rollout.dtype)
+
+
+@pytest.fixture
+def bf16_rollouts():
+    from posttrain.rollout import engine
+
+    engine.configure(dtype="bfloat16")
+    yield
+    engine.configure(dtype="float32")
+
+
+@pytest.mark.parametrize("kind", ["tiny", "qwen2"])  # qwen2: q/k/v biases on the bf16 path
+def test_bf16_weights_logits_within_bf16_rounding(kind, trained):
+    model = trained[0] if kind == "tiny" else _tiny_config_model(kind)
+    V = model.config.vocab_size
+    g = torch.Generator().manual_seed(4)
+    ids, am = _left_pad([torch.randint(3, V, (n,), generator=g).tolist() for n in (6, 13, 9)])
+    pos = (am.cumsum(-1) - 1).clamp(min=0)
+    B, T = ids.shape
+    nxt = torch.randint(3, V, (B, 1), generator=g)
+    out = {}
+    for name, wdt in (("fp32", None), ("bf16", torch.bfloat16)):
+        lean = LeanLlama(model, weight_dtype=wdt)
+        with torch.inference_mode():
+            lean.start(B, T + 1, T + 4)
+            first = lean.prefill(ids, am.bool(), pos, torch.arange(B))
+            out[name] = torch.cat([first, lean.decode(nxt, am.sum(-1), T)])
+        if wdt is not None:
+            assert lean.head_w.dtype == lean.layers[0][1].dtype == torch.bfloat16
+    ref, got = out["fp32"], out["bf16"]
+    assert got.dtype == torch.float32  # the sampler reads fp32 logits
+    err = (got - ref).abs().max() / ref.abs().max()
+    # bf16 keeps 8 significant bits (relative rounding 2^-9 per operand): a few matmuls deep, the logits
+    # stay within a few percent of their scale -- but they do differ (the weights really are bf16)
+    assert 0 < err < 0.05, float(err)
+    assert torch.corrcoef(torch.stack([got.flatten(), ref.flatten()]))[0, 1] > 0.999
+
+
+def test_bf16_engine_is_selected_cached_and_refreshed(trained, bf16_rollouts):
+    model, tok, prompts = trained
+    model = __import__("copy").deepcopy(model)
+    fwd, why = select_backend(model, 64)
+    assert fwd.name == "lean" and fwd.weight_dtype == torch.bfloat16 and "weights bfloat16" in why
+    assert select_backend(model, 64)[0] is fwd  # cached while the weights do not change
+    assert select_backend(model, 64, dtype="float32")[0].weight_dtype == torch.float32  # another dtype: rebuilt
+    assert "applies to the lean engine only" in select_backend(model, 64, "hf")[1]
+    before = generate(model, tok, prompts, greedy=True, max_new_tokens=8)
+    with torch.no_grad():
+        for p in model.model.layers[0].mlp.parameters():
+            p.mul_(-3.0)  # in place, like an optimizer step
+    after = generate(model, tok, prompts, greedy=True, max_new_tokens=8)
+    fresh = LeanLlama(model, weight_dtype=torch.bfloat16)
+    assert select_backend(model, 64)[0] is not fresh
+    torch.testing.assert_close(select_backend(model, 64)[0].head_w, fresh.head_w)  # refreshed in place
+    torch.testing.assert_close(select_backend(model, 64)[0].layers[0][6], fresh.layers[0][6])
+    assert [r.completion_ids for r in after] != [r.completion_ids for r in before]
+
+
+def test_bf16_sampler_logprobs_close_to_the_fp32_policy(trained, bf16_rollouts):
+    """What the trainers log as mismatch/kl: small but not zero."""
+    model, tok, prompts = trained
+    rollouts = generate(model, tok, prompts, n=4, max_new_tokens=16, seed=5)
+    batch = collate_rollouts(rollouts, tok.pad_token_id)
+    policy, _ = batched_logprobs(model, batch, micro_batch_size=8)
+    mask = batch.completion_mask.bool()
+    gap = (policy - batch.policy_logprobs)[mask]
+    assert 0 < gap.abs().max() < 0.5 and gap.abs().mean() < 0.05, (float(gap.abs().max()), float(gap.abs().mean()))
+
+
+def test_rollout_dtype_is_checked():
+    from posttrain.config import ConfigError, resolve
+    from posttrain.rollout import engine
+    from posttrain.trainers.grpo import GRPOConfig
+
+    with pytest.raises(ValueError, match="rollout dtype must be one of float32, bfloat16"):
+        engine.configure(dtype="float16")
+    with pytest.raises(ConfigError, match="rollout.dtype"):
+        resolve("tiny-math", "grpo", GRPOConfig, ["rollout.dtype=int8"])
+    assert resolve("tiny-math", "grpo", GRPOConfig, ["rollout.dtype=bfloat16"]).rollout.dtype == "bfloat16"
+
+
 # ------------------------------------------------------------------ greedy == model.generate
 
 

@@ -236,6 +236,20 @@ def test_gradient_accumulation_and_old_logprobs_match(sft_model, tmp_path):
     assert got[0]["grad_norm"] == pytest.approx(got[1]["grad_norm"], rel=1e-3)
 
 
+def test_mismatch_kl_is_the_gap_between_sampler_and_trainer(sft_model, tmp_path):
+    """mismatch/kl: KL(sampler || trainer) on the first minibatch; 0 for the fp32 engine, small but positive for
+    bf16 rollout weights, absent when pi_old is recomputed by the trainer."""
+    got = {}
+    for extra in ("rollout.dtype=float32", "rollout.dtype=bfloat16", "old_logprobs=recompute"):
+        out = tmp_path / extra.replace("=", "-")
+        assert main(_args(sft_model, out, "max_steps=2", "zero_variance=keep", "final_eval_rows=0", "eval_rows=0",
+                          "minibatches=2", _verifier("digits"), extra)) == 0
+        got[extra] = _steps(out)
+    assert all(s["mismatch/kl"] == pytest.approx(0.0, abs=1e-6) for s in got["rollout.dtype=float32"])
+    assert all(0 < s["mismatch/kl"] < 0.05 for s in got["rollout.dtype=bfloat16"])
+    assert all("mismatch/kl" not in s for s in got["old_logprobs=recompute"])
+
+
 def test_several_passes_clip_and_clip_higher(sft_model, tmp_path):
     out = tmp_path / "mu"
     assert main(_args(sft_model, out, _verifier("digits"), "mu=3", "minibatches=2", "lr=3e-3", "clip_eps=0.1",
