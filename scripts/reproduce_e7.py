@@ -530,7 +530,9 @@ def report_md(res: dict) -> str:
                   "phrasings, names and items)")
     L.append(f"Command: `python scripts/reproduce_e7.py{'' if tiny else ' --model real'}{' --quick' if res['quick'] else ''}"
              f"{''.join(' --set ' + s for s in res['overrides'])}`. {model_text}. Samples: {N_SAMPLES} per problem at "
-             f"T={T:g} (the temperature GRPO samples at); every K is estimated from them.\n")
+             f"T={T:g} (the temperature GRPO samples at); every K is estimated from them. Generation here and in "
+             f"the stages: rollout.dtype={res.get('rollout_dtype', 'float32')}; training: run.mixed_precision="
+             f"{res.get('mixed_precision', 'no')}.\n")
     L.append("## Result\n")
     L.append(f"- {S} greedy accuracy **{pct(sft['greedy_accuracy'])}**; after GRPO **{pct(grpo['greedy_accuracy'])}** "
              f"({'+' if gain >= 0 else ''}{100 * gain:.1f} points) after {len(g['steps'])} GRPO steps "
@@ -633,7 +635,7 @@ def report_md(res: dict) -> str:
                  "same answer.\n")
         for who, m in ((S, sft), (f"{S} + GRPO", grpo)):
             for ex in m.get("sample_examples", [])[:2]:
-                L.append(f"{who}, a sample with a counted phrase ({'right' if ex['right'] else 'wrong'}):\n\n"
+                L.append(f"{who}, a sample showing a counted behaviour ({'right' if ex['right'] else 'wrong'}):\n\n"
                          f"```\n{ex['prompt']}\n{ex['sample'][:600]}\n```\n")
     L.append("![length](e7_length.png)\n")
     L.append("![behaviour](e7_behaviour.png)\n")
@@ -749,6 +751,11 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(run_root / "grpo", ignore_errors=True)
         timing_file.write_text(json.dumps(seconds))
 
+    from dataclasses import asdict
+
+    from posttrain.rollout import configure
+
+    configure(**asdict(res_eval.rollout))  # this script's generation runs as the recipe's stages do (rollout.dtype)
     n_rows = args.eval_rows or mode.default_eval_rows[args.quick]
     rows = load_split(res_eval.task, "eval")
     if len(rows) < n_rows:
@@ -790,6 +797,7 @@ def main(argv: list[str] | None = None) -> int:
 
     res = {
         "mode": mode.name, "start_label": mode.start, "temperature": temperature,
+        "rollout_dtype": res_eval.rollout.dtype, "mixed_precision": res_eval.run.mixed_precision,
         "quick": args.quick, "overrides": args.overrides, "threads": args.threads, "eval_rows": len(rows),
         "preset": res_eval.model.path, "parameters": count_parameters(load_model(start_dir)),
         "difficulty": res_eval.task.difficulty or getattr(task_module, "DEFAULT_DIFFICULTY", None),

@@ -28,7 +28,9 @@ tests/posttrain/trainers/test_ppo.py (the losses and GAE themselves in test_loss
 13. Dropout disabled (`disable_dropout`; LoRA dropout too) in policy, value and reference (Huang 2022).
 14. Logits divided by the sampling temperature (`scale_logits_by_temperature`; Huang 2022) in every update log-prob.
 15. No top-k / top-p at rollout time (not a flag): the engine's log-probs stay the policy's.
-16. Old log-probs recomputed after the rollout (not a flag): the first ratio is exactly 1 (rollout/logprob_gap).
+16. Old log-probs recomputed after the rollout (not a flag): the first ratio is exactly 1. The sampler's own log-probs
+    are compared with them: rollout/logprob_gap (max abs) and mismatch/kl (KL(sampler || trainer), k3; > 0 with
+    rollout.dtype=bfloat16 or run.mixed_precision=bf16).
 17. Entropy bonus (`entropy_coef`): 0 by default, as in the RLHF implementations Huang et al. study.
 18. Several epochs (`ppo_epochs`) of minibatches (`minibatch_size`), reshuffled every epoch (seeded).
 19. Learning-rate annealing (`schedule`): linear to 0 over all optimizer steps by default.
@@ -495,6 +497,7 @@ def train(res: Resolved, ensure) -> Path:
         old_values = rollout_values(accelerator, m.value, batch, cfg.minibatch_size, budget)  # (B, T)
         engine_lp = batch.logprobs if cfg.scale_logits_by_temperature else batch.policy_logprobs  # (B, T)
         lp_gap = float((old_logps - engine_lp).abs().masked_fill(~cm, 0).max())
+        mismatch = float(masked_mean(kl_penalty(engine_lp, old_logps, "k3"), cm))  # KL(sampler || trainer)
 
         # ---- KL-penalised per-token rewards, GAE, whitening (global: every process holds the same tensors)
         seq_kl = masked_sum(old_logps - ref_logps, cm, -1)  # (B,) k1 per sequence, the controller's quantity
@@ -535,6 +538,7 @@ def train(res: Resolved, ensure) -> Path:
                 "rollout/kl": mean_kl, "rollout/kl_penalty": float(masked_sum(adv["kl"], cm, -1).mean()),
                 "kl_coef": kl_coef_used, "rollout/length": float(cm.sum(-1).float().mean()),
                 "rollout/no_eos": float((~ended).float().mean()), "rollout/logprob_gap": lp_gap,
+                "mismatch/kl": mismatch,
                 "rollout/returns": float(masked_mean(adv["returns"], cm)),
                 **{k: v / (cfg.ppo_epochs * n_mb) for k, v in sums.items()},
                 "time/rollout_s": t["sample"], "time/score_s": t["score"], "time/iteration_s": time.time() - t_it})

@@ -32,6 +32,14 @@ def test_missing_model_path_is_one_line_error(capsys, tmp_path):
     assert "nope" in err and "does not exist" in err
 
 
+def test_smol_math_without_the_fetched_model_says_how_to_fetch_it(capsys, tmp_path):
+    missing = tmp_path / "models" / "smollm2-135m-instruct"
+    rc = main(["grpo", "--recipe", "smol-math", f"model.path={missing}", f"run.output_dir={tmp_path}/runs"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.count("\n") == 0
+    assert f"posttrain models fetch smollm2-135m-instruct {missing}" in err
+
+
 def test_bad_data_row_is_one_line_error(capsys, tmp_path):
     bad = tmp_path / "train.jsonl"
     bad.write_text('{"prompt": "a", "completion": "b"}\n{"prompt": "c"}\n')

@@ -191,6 +191,20 @@ def test_grpo_raises_an_easy_reward_on_the_real_model(smol, tmp_path, learning):
     learning.above("digit fraction, last 2 - first 2 steps", sum(r[-2:]) / 2 - sum(r[:2]) / 2, 0.05, r)
 
 
+def test_the_smol_math_recipe_runs_end_to_end(smol, tmp_path, capsys):
+    """`posttrain grpo --recipe smol-math` as the README shows it (shortened): the instruct model as it is, LoRA,
+    bf16 rollout weights (mismatch/kl logged and small), the console naming the base model, final/ saved."""
+    out = tmp_path / "runs"
+    assert main(["grpo", "--recipe", "smol-math", f"run.output_dir={out}", f"model.path={smol}", "run.quiet=true",
+                 THREADS, "prompts_per_step=2", "group_size=4", "max_new_tokens=24", "max_steps=2", "eval_every=0",
+                 "eval_rows=4", "final_eval_rows=4", "save_every=0", "task.n_train=16"]) == 0
+    steps = [x for x in _metrics(out / "smol-math" / "grpo") if "reward/mean" in x]
+    assert len(steps) == 2 and all(0 <= s["mismatch/kl"] < 0.1 for s in steps)
+    assert "held-out greedy accuracy on 4 problems: base" in capsys.readouterr().out
+    assert (out / "smol-math" / "grpo" / "final" / "adapter_config.json").is_file() or \
+        (out / "smol-math" / "grpo" / "final" / "model.safetensors").is_file()
+
+
 def test_eval_and_lora_on_the_real_model(chain, capsys):
     from transformers import AutoModelForCausalLM
 

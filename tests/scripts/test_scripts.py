@@ -23,6 +23,7 @@ def _load(path: Path):
     """Import a script as `python scripts/NAME.py` would see it (its folder first on sys.path), without running it."""
     spec = importlib.util.spec_from_file_location(f"_script_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while it executes
     sys.path.insert(0, str(path.parent))
     try:
         spec.loader.exec_module(module)
@@ -99,3 +100,56 @@ def test_gpu_check_dry_mode_runs_every_row_on_cpu(tmp_path, capsys):
     assert [k for k, r in rows.items() if r["status"] != "ok"] == ["sft step (FSDP2, 1 process)"]
     assert rows["engine vs generate"]["greedy agreement"] == "16/16 rows"
     assert "| grpo step (float32) | ok |" in capsys.readouterr().out
+
+
+def _fake_e7_eval(acc: float, behaviours: dict[str, float]) -> dict:
+    curve = [min(1.0, acc + 0.03 * k) for k in range(16)]
+    return {"greedy_accuracy": acc, "sample_accuracy": curve[0], "pass_at_k": {1: curve[0], 4: curve[3], 16: curve[15]},
+            "pass_curve": curve, "maj_at_k": {1: curve[0], 4: acc, 16: acc + 0.02}, "frac_mixed_groups_of_8": 0.4,
+            "frac_some_right_of_16": 0.6, "frac_all_right_of_16": 0.1, "greedy_tokens_per_problem": 30.0,
+            "sample_tokens_per_sample": 32.0, "greedy_seconds": 3.0, "sample_seconds": 40.0, "greedy_truncated": 0.1,
+            "behaviour_greedy": dict(behaviours), "behaviour_samples": dict(behaviours),
+            "greedy_reasons": {"correct": 5, "wrong answer": 5},
+            "examples": [{"prompt": "Ava has 2 apples. She gets 3 more apples. How many?", "greedy": "2 + 3 = 5",
+                          "right": True}],
+            "sample_examples": [{"prompt": "p", "sample": "Wait, 2 + 3 = 5", "right": True}],
+            "greedy_by_question": {"direct-style question": {"n": 4, "greedy_accuracy": acc, "greedy_worked": 0.5,
+                                                             "worked_accuracy": 0.9},
+                                   "other questions": {"n": 6, "greedy_accuracy": acc, "greedy_worked": 1.0,
+                                                       "worked_accuracy": 0.9}}}
+
+
+@pytest.mark.parametrize("mode", ["tiny", "real"])
+def test_e7_report_and_plots_of_each_mode(mode, tmp_path):
+    """The report and the plots of reproduce_e7.py, from the numbers of a run (both modes): every section renders,
+    the real mode states its verdict against the +10-point target and names the instruct model."""
+    e7 = _load(SCRIPTS / "reproduce_e7.py")
+    m = e7.MODES[mode]
+    beh = {k: 0.1 for k, _ in m.behaviours}
+    steps = list(range(1, 11))
+    res = {"mode": mode, "start_label": m.start, "temperature": 0.7, "rollout_dtype": "bfloat16",
+           "mixed_precision": "auto", "quick": True, "overrides": [], "threads": 2, "eval_rows": 10,
+           "preset": "models/smollm2-135m-instruct", "parameters": 134_515_008, "difficulty": 1,
+           "phrases": {"verification": ["check"], "self_correction": ["wait"]}, "runs_dir": str(tmp_path),
+           "reused": [], "direct_prob": 0.8, "seconds": {"sft": 0.0 if mode == "real" else 60.0, "grpo": 120.0,
+                                                          "eval": 30.0},
+           "eval": {"sft": _fake_e7_eval(0.2, beh), "grpo": _fake_e7_eval(0.45, beh)},
+           "grpo": {"prompts_per_step": 8, "group_size": 8, "steps": steps, "reward": [0.1] * 10,
+                    "train_length": [40.0] * 10, "zero_var_frac": [0.3] * 10, "entropy": [0.5] * 10,
+                    "cum_sampled_tokens": [100.0 * s for s in steps], "cum_step_seconds": [12.0 * s for s in steps],
+                    "eval_steps": [0, 5, 10], "eval_accuracy": [0.2, 0.3, 0.45], "eval_length": [40.0, 30.0, 20.0],
+                    "sampled_tokens": 1000.0, "sampled_sequences": 640.0, "trained_sequences": 400.0,
+                    "config": {"eval_rows": 10, "lr": 2e-4}},
+           "behaviour_over_training": {"steps": [1, 10], "length": [40.0, 20.0], **{k: [0.1, 0.0] for k, _ in m.behaviours}},
+           "sft_cost": {"steps": 0, "batch_size": 0, "tokens": 0.0, "sequences": 0, "mean_row_tokens": 0.0},
+           "runtime_s": 300.0}
+    res["compute"] = e7.compute_table(res)
+    figs = e7.plots(res, tmp_path)
+    assert all((tmp_path / name).is_file() for name in figs) and len(figs) == 5
+    text = e7.report_md(res)
+    assert f"+{25.0:.1f} points" in text and "## Compute" in text and "## Examples" in text
+    if mode == "real":
+        assert "--model real" in text and "**met**" in text and "instruct greedy accuracy" in text
+        assert "Where the gain comes from" not in text and "a sample showing a counted behaviour" in text
+    else:
+        assert "Where the gain comes from" in text and "SFT greedy accuracy" in text and "**met**" not in text
