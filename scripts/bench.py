@@ -38,7 +38,10 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             measured fp32 matmul rate. Ours only (no TRL counterpart).
 Every TRL comparison: TRL (optional: `pip install -e '.[bench]'`) configured for this CPU (fp32: bf16=False,
 activation (gradient) checkpointing off, asserted after each run; no logging / saving / eval), each side's
-own AdamW implementation; each implementation runs once untimed first (warm-up), then runs alternate,
+own AdamW implementation; TRL's time runs from its first step (a TrainerCallback) to the end of `train()`, and
+ours from just before our first step (building our optimizer, a few ms, included), so TRL's one-off setup
+inside `train()` is not charged to it; each implementation runs once untimed
+first (warm-up), then runs alternate,
 medians (ppo and grpo: the first iteration(s) of every run are the warm-up). Both run in the same process,
 so posttrain's glibc malloc tuning (`loop.setup`) applies to TRL's timed runs too. sft and rm also check
 that TRL trained on exactly our non-pad token count.
@@ -400,16 +403,34 @@ def bench_generate(args) -> dict:
 # ------------------------------------------------------------------ section: sft
 
 
+def _first_step_clock():
+    """A TrainerCallback that notes when TRL's first step begins: TRL's time runs from there to the end of
+    `train()`, so its one-off setup inside `train()` (dataloader, optimizer, accelerate preparation) is not
+    charged to it, as ours starts at our first step."""
+    from transformers import TrainerCallback
+
+    class FirstStepClock(TrainerCallback):
+        t0: float | None = None
+
+        def on_step_begin(self, *a, **k):
+            if self.t0 is None:
+                self.t0 = time.perf_counter()
+
+    return FirstStepClock()
+
+
 def _trl_timed_train(make_trainer, printer, steps: int, tokens: int, args) -> float:
-    """Build a TRL trainer (quietly), train it, and return the seconds of `train()`; checks that it ran `steps`
-    steps without activation checkpointing on exactly our `tokens` non-pad tokens (when it counts them)."""
+    """Build a TRL trainer (quietly), train it, and return the seconds from its first step to the end of `train()`;
+    checks that it ran `steps` steps without activation checkpointing on exactly our `tokens` non-pad tokens (when
+    it counts them)."""
     with contextlib.redirect_stderr(io.StringIO()):
         trainer = make_trainer()
         trainer.remove_callback(printer)
-        t0 = time.perf_counter()
+        clock = _first_step_clock()
+        trainer.add_callback(clock)
         out = trainer.train()
     _sync(args.device)
-    dt = time.perf_counter() - t0
+    dt = time.perf_counter() - clock.t0
     assert out.global_step == steps, f"TRL ran {out.global_step} steps, expected {steps}"
     assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
     seen = getattr(trainer, "_total_train_tokens", tokens)
@@ -599,7 +620,8 @@ def _dpo_setup(args) -> SimpleNamespace:
     Both train one pass over the same S*B pairs (S steps of B pairs), so they process exactly the same
     tokens; tokens/s = (prompt+chosen + prompt+rejected tokens of those pairs) / wall time. Ours is timed
     from the reference precompute (the SFT model's log-probs of every pair, done once) to the last
-    optimizer step; TRL's from `trainer.train()` to its return (its reference model runs every step,
+    optimizer step; TRL's from its first step (`_first_step_clock`) to the return of `train()` (its reference
+    model runs every step,
     its default); with precompute_ref_log_probs=True (second row) TRL computes them in its constructor, so
     a second, identical precompute pass is timed alone and added to its train() time. TRL is configured for
     this CPU: fp32 (bf16=False), gradient_checkpointing=False, no logging / saving / eval, our batch order.
@@ -663,6 +685,8 @@ def _dpo_setup(args) -> SimpleNamespace:
             trainer = DPOTrainer(model=model, ref_model=ref, args=targs, train_dataset=train_data,
                                  processing_class=tok)
             trainer.remove_callback(printer)
+            clock = _first_step_clock()
+            trainer.add_callback(clock)
             t_pre = 0.0
             if precompute:  # TRL ran it in the constructor (with dataset bookkeeping): time one more pass alone
                 ds = trainer.train_dataset.remove_columns(["ref_chosen_logps", "ref_rejected_logps"])
@@ -670,10 +694,9 @@ def _dpo_setup(args) -> SimpleNamespace:
                 t0 = time.perf_counter()
                 trainer._precompute_ref_logps(ds, "train", B)
                 t_pre = time.perf_counter() - t0
-            t0 = time.perf_counter() - t_pre
             out = trainer.train()
         _sync(args.device)
-        dt = time.perf_counter() - t0
+        dt = time.perf_counter() - clock.t0 + t_pre
         assert out.global_step == S, f"TRL ran {out.global_step} steps, expected {S}"
         assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
         return dt
@@ -1116,6 +1139,10 @@ def bench_real(args) -> dict:
     train_model = copy.deepcopy(model).train()
     opt = torch.optim.AdamW(train_model.parameters(), lr=1e-6)
     losses = {}
+    with torch.no_grad():  # the same weights, both precisions: how far bf16 autocast moves the loss
+        for a in (False, True):
+            with torch.autocast(args.device, dtype=torch.bfloat16, enabled=a):
+                losses[a] = float(train_model(**enc, labels=labels).loss)
 
     def step(autocast: bool):
         with torch.autocast(args.device, dtype=torch.bfloat16, enabled=autocast):
@@ -1123,7 +1150,6 @@ def bench_real(args) -> dict:
         loss.backward()
         opt.step()
         opt.zero_grad(set_to_none=True)
-        losses[autocast] = float(loss)
 
     for a in (False, True):
         step(a)  # warm-up
@@ -1133,9 +1159,10 @@ def bench_real(args) -> dict:
             t_step[a].append(_timed(lambda: step(a), args.device))
     fp32_s, bf16_s = statistics.median(t_step[False]), statistics.median(t_step[True])
     print(f"training step, batch 8 x {enc['input_ids'].shape[1]} tokens (HF forward + backward + AdamW): fp32 "
-          f"{fp32_s:.2f} s, bf16 autocast {bf16_s:.2f} s ({fp32_s / bf16_s:.2f}x); last losses fp32 {losses[False]:.4f}, "
-          f"bf16 {losses[True]:.4f}")
+          f"{fp32_s:.2f} s, bf16 autocast {bf16_s:.2f} s ({fp32_s / bf16_s:.2f}x); loss of the same weights fp32 "
+          f"{losses[False]:.4f}, bf16 autocast {losses[True]:.4f}")
     return {"rows": rows_out, "train_step": {"tokens": int(enc["input_ids"].numel()), "fp32_s": fp32_s,
+                                             "loss_fp32": losses[False], "loss_bf16": losses[True],
                                              "bf16_autocast_s": bf16_s, "speedup": fp32_s / bf16_s,
                                              "times": {"fp32": t_step[False], "bf16": t_step[True]}}}
 
