@@ -197,7 +197,8 @@ def test_the_smol_math_recipe_runs_end_to_end(smol, tmp_path, capsys):
     out = tmp_path / "runs"
     assert main(["grpo", "--recipe", "smol-math", f"run.output_dir={out}", f"model.path={smol}", "run.quiet=true",
                  THREADS, "prompts_per_step=2", "group_size=4", "max_new_tokens=24", "max_steps=2", "eval_every=0",
-                 "eval_rows=4", "final_eval_rows=4", "save_every=0", "task.n_train=16"]) == 0
+                 "eval_rows=4", "final_eval_rows=4", "save_every=0", "task.n_train=16",
+                 "zero_variance=keep"]) == 0  # keep: every step trains, so every step measures mismatch/kl
     steps = [x for x in _metrics(out / "smol-math" / "grpo") if "reward/mean" in x]
     assert len(steps) == 2 and all(0 <= s["mismatch/kl"] < 0.1 for s in steps)
     assert "held-out greedy accuracy on 4 problems: base" in capsys.readouterr().out

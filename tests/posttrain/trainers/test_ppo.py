@@ -277,7 +277,7 @@ def test_ppo_learns_a_hand_made_reward(world, tmp_path, vowels, capsys, learning
     first, last = m[0]["rollout/score_raw"], sum(r["rollout/score_raw"] for r in m[-2:]) / 2
     learning.above("vowel fraction, last - first", last - first, 0.15, [r["rollout/score_raw"] for r in m])
     assert all(r["rollout/logprob_gap"] < 1e-3 for r in m)  # recomputed old log-probs == the engine's
-    assert all(0 <= r["mismatch/kl"] < 1e-6 for r in m)  # fp32 sampler and trainer: no mismatch
+    assert all(abs(r["mismatch/kl"]) < 1e-6 for r in m)  # fp32 sampler and trainer: no mismatch (k3 >= 0 up to rounding)
     evals = [r for r in _metrics(out) if "gold/win_rate" in r]
     assert [r["step"] for r in evals] == [0, 4, 8] and all("kl" in r for r in evals)
     text = capsys.readouterr().out
