@@ -287,7 +287,7 @@ class LeanLlama:
             else:
                 bias_l = attn_bias
             a = self._attend(q, k, v, bias_l)  # (U, H, Tq, D)
-            x = self._acc(x.clone() if last else x, a.transpose(1, 2).reshape(x.shape[0], H * D), o_w)
+            x = self._acc(x, a.transpose(1, 2).reshape(x.shape[0], H * D), o_w)  # in place (last layer: a view)
             if o_b is not None:
                 x = x + o_b
             x = self._mlp(x, layer)

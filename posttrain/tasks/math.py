@@ -105,6 +105,8 @@ import re
 from collections import Counter
 from typing import Any, Literal, Sequence
 
+from posttrain.tasks import gold
+
 TASK_NAME = NAME = "tiny-math"
 VERIFIER = "math"
 GOLD_METRICS = {"accuracy": "accuracy", "length_chars": "mean_length_chars"}
@@ -265,23 +267,12 @@ def corpus(n: int, seed: int) -> list[str]:
 
 # --- scoring ------------------------------------------------------------------------------------
 
-_verifier = None
-
-
 def _math_verifier():
-    global _verifier
-    if _verifier is None:
-        from verifiers.registry import get_verifier
-
-        _verifier = get_verifier(VERIFIER)
-    return _verifier
+    return gold.verifier(VERIFIER)
 
 
 def _answer_of(meta: Any, i: int) -> str:
-    if not isinstance(meta, dict) or not isinstance(meta.get("answer"), (str, int)) or str(meta["answer"]).strip() == "":
-        raise ValueError(f"tiny-math evaluate: row {i + 1}: meta has no 'answer' (the gold number as text, e.g. "
-                         f"\"66\"); got {meta!r:.80}")
-    return str(meta["answer"])
+    return gold.answer_of(meta, i, TASK_NAME, "66")
 
 
 def score(meta: dict[str, Any], completion: str) -> tuple[float, str]:
@@ -297,18 +288,12 @@ def gold_quality(meta: dict[str, Any], completion: str) -> float:
 
 def gold_prefer(meta: dict[str, Any], a: str, b: str) -> int:
     """+1 if only `a` is correct, -1 if only `b` is, 0 otherwise."""
-    qa, qb = gold_quality(meta, a), gold_quality(meta, b)
-    return (qa > qb) - (qa < qb)
+    return gold.prefer(gold_quality(meta, a), gold_quality(meta, b))
 
 
 def win_rate(metas: Sequence[dict[str, Any]], candidates: Sequence[str], baselines: Sequence[str]) -> float:
     """Fraction of problems where the candidate is right and the baseline wrong; ties count half."""
-    if not (len(metas) == len(candidates) == len(baselines)):
-        raise ValueError(f"win_rate needs equal lengths, got {len(metas)} metas, "
-                         f"{len(candidates)} candidates, {len(baselines)} baselines")
-    if not metas:
-        raise ValueError("win_rate of zero examples is undefined")
-    return sum((gold_prefer(m, c, b) + 1) / 2 for m, c, b in zip(metas, candidates, baselines)) / len(metas)
+    return gold.win_rate(gold_prefer, metas, candidates, baselines)
 
 
 def equation_of(meta: dict[str, Any]) -> str:
