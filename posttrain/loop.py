@@ -156,6 +156,12 @@ def build_scheduler(optimizer, warmup_steps: int, total_steps: int, schedule: st
         optimizer, lambda s: lr_factor(s, warmup_steps, total_steps, schedule, min_lr_ratio))
 
 
+def metric_extreme(name: str) -> str:
+    """"max" / "min" for a metric reduced by its extreme over micro-batches and processes, else ""."""
+    leaf = name.rsplit("/", 1)[-1]
+    return "max" if name.endswith("_max") or leaf.startswith("max_") else "min" if leaf.startswith("min_") else ""
+
+
 def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list[Any],
                    loss_fn: Callable[[Any], tuple[torch.Tensor, dict[str, float]]],
                    max_grad_norm: float, step: int, weights: list[float] | None = None) -> dict[str, float]:
@@ -164,7 +170,8 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
     `loss_fn(micro_batch)` returns (loss, metrics) where the loss is already scaled to its
     share of the whole batch (e.g. summed token losses / tokens in the batch), so the
     accumulated gradient is that of the batch loss. Metrics are summed over micro-batches
-    when their name ends in `_sum`, maxed when it ends in `_max`, else averaged (over processes too).
+    when their name ends in `_sum`, maxed when it ends in `_max` or its last part starts with `max_`
+    (`mismatch/max_ratio`), minimised when that part starts with `min_`, else averaged (over processes too).
 
     `weights` (one per micro-batch): its share of the GLOBAL batch, all processes' shares summing to 1
     (e.g. its loss tokens / the batch's). The averaged metrics are then the weighted means over the
@@ -204,9 +211,12 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
         loss_total += loss.item()
         w = 1.0 if weights is None else float(weights[i]) if i < real else 0.0
         for k, v in metrics.items():
-            if k.endswith("_max"):
+            if metric_extreme(k) == "max":
                 v = float(v) if (v == v and w != 0.0) else -math.inf
                 totals[k] = max(totals.get(k, -math.inf), v)
+            elif metric_extreme(k) == "min":
+                v = float(v) if (v == v and w != 0.0) else math.inf
+                totals[k] = min(totals.get(k, math.inf), v)
             elif k.endswith("_sum"):
                 totals[k] = totals.get(k, 0.0) + (float(v) if w != 0.0 else 0.0)
             else:
@@ -221,19 +231,21 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
     scheduler.step()
     optimizer.zero_grad(set_to_none=True)
     n = real if weights is None else 1  # weighted: the sums are already the means
-    out = {k: (v if k.endswith(("_sum", "_max")) else v / n) for k, v in totals.items()}
+    out = {k: (v if k.endswith("_sum") or metric_extreme(k) else v / n) for k, v in totals.items()}
     out["loss"] = loss_total
     if accelerator.num_processes > 1:
         # The logged numbers describe the global batch: losses and means averaged over processes (each
         # process's loss is its share scaled up, see loss_fn), weighted means summed (their weights sum
-        # to 1 over all processes), `_sum` metrics summed, `_max` maxed.
+        # to 1 over all processes), `_sum` metrics summed, extremes (`_max`, `max_`, `min_`) maxed or minimised.
         keys = sorted(out)
         t = torch.tensor([out[k] for k in keys], dtype=torch.float64, device=accelerator.device)
         mean = accelerator.reduce(t.clone(), reduction="mean")
         total = accelerator.reduce(t.clone(), reduction="sum")
-        top = accelerator.gather(t.unsqueeze(0)).max(0).values  # (W, k) -> (k,)
+        gathered = accelerator.gather(t.unsqueeze(0))  # (W, k)
+        top, bottom = gathered.max(0).values, gathered.min(0).values  # (k,)
         summed = ("_sum",) if weights is None else ("_sum", "")
-        out = {k: float(top[i] if k.endswith("_max") else mean[i] if k == "loss"
+        pick = {"max": top, "min": bottom}
+        out = {k: float(pick[metric_extreme(k)][i] if metric_extreme(k) else mean[i] if k == "loss"
                         else total[i] if k.endswith(summed) else mean[i]) for i, k in enumerate(keys)}
     out.update(grad_norm=grad_norm, lr=scheduler.get_last_lr()[0])
     return out

@@ -11,8 +11,15 @@ Log-probs are those of the sampled tokens as `posttrain.logprobs` gathers them, 
 masked mean / sum comes from `posttrain.logprobs` (the single implementation).
 
 - `dpo_loss`: DPO (sigmoid, with conservative-DPO label smoothing), IPO, SLiC hinge.
+- `simpo_loss`: SimPO, the reference-free length-normalised margin loss.
+- `orpo_loss`: ORPO, the SFT loss plus an odds-ratio term, reference-free.
 - `bradley_terry_loss`: the reward-model pairwise loss, optional margin.
 - `ppo_policy_loss`: PPO clipped surrogate with DAPO clip-higher and three aggregations.
+- `gspo_policy_loss`: GSPO's sequence-level clipped ratio, and its token-level variant GSPO-token.
+- `cispo_policy_loss`: CISPO's clipped, stop-gradient importance weight times the log-prob.
+- `policy_loss`: the one entry the trainers call, selecting among the three by a `PolicyLoss` name.
+- `rollout_correction`: truncated (TIS) or masked (IcePop-style) importance weights between the
+  sampler and the trainer; `sampler_mismatch`: the gap between them as metrics.
 - `aggregate_token_loss`: those aggregations on their own, so that a GRPO trainer reduces its
   per-token KL term exactly like the policy term.
 - `kl_penalty`: Schulman's k1 / k2 / k3 per-token estimators.
@@ -33,9 +40,16 @@ Choices and deviations, each named again where it is used:
 - `value_loss` keeps the 1/2 factor of TRL / "N implementation details of RLHF with PPO"
   (cleanrl uses it too); its explained variance is that of the `values` passed in.
 - `kl_penalty` does not clamp (verl clamps its k3, "low_var_kl", to [-10, 10]).
+- `cispo_policy_loss` writes CISPO's term as -A sg(w) exp(log pi - sg(log pi)) rather than the
+  paper's -A sg(w) log pi: the gradient is the same (-A w grad log pi), and the value is the
+  clipped-weight surrogate -A w, comparable with PPO's, instead of a number that moves with log pi.
+- `rollout_correction(level="sequence")` uses the geometric mean of the token ratios (verl's
+  "geometric" level), not their product: the product, the exact sequence weight, spans orders of
+  magnitude that grow with length, so one cap C would truncate or drop nearly every long sequence.
 """
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import torch
@@ -44,6 +58,9 @@ import torch.nn.functional as F
 from posttrain.logprobs import masked_mean, masked_sum, masked_var
 
 Aggregation = Literal["seq_mean_token_mean", "token_mean", "seq_mean_token_sum_norm"]
+PolicyLoss = Literal["clip", "gspo", "gspo_token", "cispo"]
+Correction = Literal["none", "tis", "mask"]
+CorrectionLevel = Literal["token", "sequence"]
 
 
 # ----------------------------------------------------------------------------- preferences
@@ -115,6 +132,84 @@ def dpo_loss(
             "rewards/accuracy": (chosen_rewards > rejected_rewards).float().mean().item(),
             "logps/chosen": policy_chosen_logps.detach().mean().item(),
             "logps/rejected": policy_rejected_logps.detach().mean().item(),
+        }
+    return loss, metrics
+
+
+def simpo_loss(
+    policy_chosen_logps: torch.Tensor,
+    policy_rejected_logps: torch.Tensor,
+    chosen_tokens: torch.Tensor,
+    rejected_tokens: torch.Tensor,
+    *,
+    beta: float,
+    gamma: float,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """SimPO (Meng et al. 2024, "SimPO: Simple Preference Optimization with a Reference-Free Reward", eq. 6).
+
+    The implicit reward is the length-normalised log-likelihood r(y) = (beta / |y|) log pi(y): no reference
+    model. Per pair, -log sigmoid(r(y_c) - r(y_r) - gamma) with the target reward margin gamma >= 0; mean
+    over the B pairs. Inputs: (B,) summed log-probs of each side and (B,) their token counts (clamped to
+    >= 1). The paper's ranges: beta 2-10, gamma 0.3-1.6 (TRL's CPOTrainer writes gamma as
+    simpo_gamma and divides by beta inside the sigmoid's argument, which is the same loss).
+
+    Metrics: rewards/chosen, rewards/rejected (means of r), rewards/margin, rewards/accuracy (r_c > r_r),
+    logps/chosen, logps/rejected (the per-token means (1/|y|) log pi, without beta).
+    """
+    if beta <= 0 or gamma < 0:
+        raise ValueError(f"simpo_loss: beta must be > 0 and gamma >= 0, got {beta}, {gamma}")
+    avg_c = policy_chosen_logps / chosen_tokens.clamp(min=1)  # (B,)
+    avg_r = policy_rejected_logps / rejected_tokens.clamp(min=1)  # (B,)
+    rc, rr = beta * avg_c, beta * avg_r  # (B,), (B,)
+    loss = -F.logsigmoid(rc - rr - gamma).mean()
+    with torch.no_grad():
+        metrics = {
+            "rewards/chosen": rc.detach().mean().item(), "rewards/rejected": rr.detach().mean().item(),
+            "rewards/margin": (rc - rr).detach().mean().item(),
+            "rewards/accuracy": (rc.detach() > rr.detach()).float().mean().item(),
+            "logps/chosen": avg_c.detach().mean().item(), "logps/rejected": avg_r.detach().mean().item(),
+        }
+    return loss, metrics
+
+
+def orpo_loss(
+    policy_chosen_logps: torch.Tensor,
+    policy_rejected_logps: torch.Tensor,
+    chosen_tokens: torch.Tensor,
+    rejected_tokens: torch.Tensor,
+    *,
+    lam: float,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """ORPO (Hong et al. 2024, "ORPO: Monolithic Preference Optimization without Reference Model", eq. 6-7).
+
+    With the per-token mean log-likelihood l(y) = (1/|y|) log pi(y) and odds(y) = P / (1 - P) for
+    P = exp(l(y)) (the paper's length-normalised likelihood), the odds-ratio term is
+        L_OR = -log sigmoid( log odds(y_c) - log odds(y_r) ),
+    log odds(y) = l(y) - log(1 - exp(l(y))), and the loss is L_SFT + lam * L_OR, where L_SFT is the
+    chosen side's per-token NLL, -l(y_c), averaged over pairs: one stage, no reference model. The paper
+    uses lam 0.1-0.2 (TRL's ORPOConfig calls it beta). Inputs as `simpo_loss`. log(1 - exp(l)) is computed
+    as log(-expm1(l)), finite for every l < 0 (l = 0, a certain completion, gives -inf odds: clamped to
+    l <= -1e-6 here).
+
+    Metrics: nll (L_SFT), log_odds_ratio (mean of log odds(y_c) - log odds(y_r)), rewards/accuracy
+    (fraction with log odds(y_c) > log odds(y_r)), rewards/margin (mean of lam times the log-odds ratio,
+    TRL's reward margin), logps/chosen and logps/rejected (means of l).
+    """
+    if lam < 0:
+        raise ValueError(f"orpo_loss: lam must be >= 0, got {lam}")
+    avg_c = (policy_chosen_logps / chosen_tokens.clamp(min=1)).clamp(max=-1e-6)  # (B,)
+    avg_r = (policy_rejected_logps / rejected_tokens.clamp(min=1)).clamp(max=-1e-6)  # (B,)
+    log_odds = (avg_c - torch.log(-torch.expm1(avg_c))) - (avg_r - torch.log(-torch.expm1(avg_r)))  # (B,)
+    odds_term = -F.logsigmoid(log_odds).mean()
+    nll = -avg_c.mean()
+    loss = nll + lam * odds_term
+    with torch.no_grad():
+        lo = log_odds.detach()
+        metrics = {
+            "nll": nll.detach().item(), "odds_ratio_loss": odds_term.detach().item(),
+            "log_odds_ratio": lo.mean().item(), "rewards/accuracy": (lo > 0).float().mean().item(),
+            "rewards/margin": (lam * lo).mean().item(),
+            "logps/chosen": avg_c.detach().mean().item(), "logps/rejected": avg_r.detach().mean().item(),
         }
     return loss, metrics
 
@@ -200,6 +295,7 @@ def ppo_policy_loss(
     clip_eps_high: float | None = None,
     aggregation: Aggregation = "token_mean",
     max_tokens: int | None = None,
+    weights: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """PPO clipped surrogate (Schulman et al. 2017, eq. 7), per token, as a loss to minimise.
 
@@ -212,6 +308,8 @@ def ppo_policy_loss(
     is DAPO's "clip-higher" (Yu et al. 2025, eps_low = 0.2, eps_high = 0.28): it only changes
     the loss of tokens with A > 0 and ratio > 1 + clip_eps. The per-token loss is reduced by
     `aggregate_token_loss(aggregation, max_tokens)` (GRPO / DAPO / Dr. GRPO normalisers).
+    `weights` (B, T), optional and never differentiated: per-token factors of the loss, the
+    importance weights of `rollout_correction` (TIS: verl multiplies its policy loss the same way).
 
     GRPO's KL term and PPO's entropy bonus are separate terms the trainer adds: `kl_penalty`
     reduced with the same `aggregate_token_loss`, and the entropy from `posttrain.logprobs`.
@@ -222,36 +320,269 @@ def ppo_policy_loss(
     estimate of KL(pi_old || pi_theta) on the rollout samples: ratio - 1 - log ratio, cleanrl's
     `approx_kl`), ratio_mean, ratio_max.
     """
+    eps_low, eps_high, completion_mask, advantages, log_ratio = _ratio_inputs(
+        logps, old_logps, advantages, completion_mask, clip_eps, clip_eps_high, "ppo_policy_loss")
+    ratio = log_ratio.exp()  # (B, T)
+    unclipped = -advantages * ratio  # (B, T)
+    clipped = -advantages * ratio.clamp(1.0 - eps_low, 1.0 + eps_high)  # (B, T)
+    per_token = torch.maximum(unclipped, clipped)  # (B, T)
+    loss = aggregate_token_loss(_weighted(per_token, weights, completion_mask), completion_mask, aggregation, max_tokens)
+    return loss, _ratio_metrics(ratio, log_ratio, advantages, completion_mask, eps_low, eps_high,
+                                clipped_branch=clipped.detach() > unclipped.detach())
+
+
+def _weighted(per_token: torch.Tensor, weights: torch.Tensor | None, mask: torch.Tensor) -> torch.Tensor:
+    """per_token * weights (detached; selected inside the mask, so garbage outside it stays out)."""
+    if weights is None:
+        return per_token
+    return per_token * torch.where(mask, weights.detach(), torch.ones_like(per_token))
+
+
+def _ratio_metrics(ratio: torch.Tensor, log_ratio: torch.Tensor, advantages: torch.Tensor, mask: torch.Tensor,
+                   eps_low: float, eps_high: float, clipped_branch: torch.Tensor) -> dict[str, float]:
+    """The clip and ratio statistics of a (B, T) ratio over the masked tokens (see `ppo_policy_loss`)."""
+    with torch.no_grad():
+        r, lr = ratio.detach(), log_ratio.detach()  # (B, T)
+        clip_low = mask & (advantages < 0) & (r < 1.0 - eps_low)  # (B, T)
+        clip_high = mask & (advantages > 0) & (r > 1.0 + eps_high)  # (B, T)
+        return {
+            "clip_frac": masked_mean(clipped_branch.float(), mask).item(),
+            "clip_frac_low": masked_mean(clip_low.float(), mask).item(),
+            "clip_frac_high": masked_mean(clip_high.float(), mask).item(),
+            "approx_kl": masked_mean(r - 1.0 - lr, mask).item(),
+            "ratio_mean": masked_mean(r, mask).item(),
+            "ratio_max": r[mask].max().item() if mask.any() else float("nan"),
+        }
+
+
+def _ratio_inputs(logps, old_logps, advantages, completion_mask, clip_eps, clip_eps_high, who: str):
+    """Shared argument handling of the policy losses: the clip range, a bool mask, (B, T) advantages selected
+    inside the mask and the masked log-ratio log pi - log pi_old."""
     if clip_eps <= 0 or (clip_eps_high is not None and clip_eps_high <= 0):
-        raise ValueError(f"ppo_policy_loss: clip ranges must be > 0, got {clip_eps}, {clip_eps_high}")
-    eps_low = clip_eps
+        raise ValueError(f"{who}: clip ranges must be > 0, got {clip_eps}, {clip_eps_high}")
     eps_high = clip_eps if clip_eps_high is None else clip_eps_high
     completion_mask = completion_mask.bool()
     if advantages.dim() == 1:
         advantages = advantages.unsqueeze(-1)  # (B,) -> (B, 1), broadcasts over T
     advantages = torch.where(completion_mask, advantages.detach(), 0.0).expand_as(logps)  # (B, T)
-
     log_ratio = torch.where(completion_mask, logps - old_logps.detach(), torch.zeros_like(logps))  # (B, T)
-    ratio = log_ratio.exp()  # (B, T)
-    unclipped = -advantages * ratio  # (B, T)
-    clipped = -advantages * ratio.clamp(1.0 - eps_low, 1.0 + eps_high)  # (B, T)
-    per_token = torch.maximum(unclipped, clipped)  # (B, T)
-    loss = aggregate_token_loss(per_token, completion_mask, aggregation, max_tokens)
+    return clip_eps, eps_high, completion_mask, advantages, log_ratio
 
+
+def gspo_policy_loss(
+    logps: torch.Tensor,
+    old_logps: torch.Tensor,
+    advantages: torch.Tensor,
+    completion_mask: torch.Tensor,
+    *,
+    clip_eps: float,
+    clip_eps_high: float | None = None,
+    token_level: bool = False,
+    aggregation: Aggregation = "seq_mean_token_mean",
+    max_tokens: int | None = None,
+    weights: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """GSPO (Zheng et al. 2025, "Group Sequence Policy Optimization"): one importance ratio per sequence.
+
+    The sequence ratio is the geometric mean of the token ratios (GSPO eq. 7),
+        s_i = exp( (1/|o_i|) sum_t [log pi_theta(o_it) - log pi_old(o_it)] ),
+    clipped per sequence: loss_i = max(-A_i s_i, -A_i clip(s_i, 1 - clip_eps, 1 + clip_eps_high)), and
+    the loss is the mean over sequences (GSPO eq. 5). The paper's ranges are far narrower than PPO's
+    (3e-4 / 4e-4, §5.1), because s_i averages the log-ratios. `advantages` must be (B,) (one per
+    sequence); `aggregation` must stay "seq_mean_token_mean" and `weights`, if given, must be constant
+    along each sequence (a sequence-level importance weight): both follow from the loss being per sequence.
+
+    `token_level=True` is GSPO-token (GSPO eq. 13): s_it = sg(s_i) * pi_theta(o_it) / sg(pi_theta(o_it)),
+    equal to s_i in value but differentiated per token, so (B, T) advantages (PPO's GAE) are allowed;
+    the per-token clipped term is reduced by `aggregate_token_loss(aggregation)` and `weights` (B, T)
+    multiply it. With one advantage per sequence and the per-sequence token mean, GSPO-token's loss and
+    gradient equal GSPO's (GSPO §4.3; tested).
+
+    Metrics: as `ppo_policy_loss`'s, over sequences for GSPO (clip_frac: fraction of sequences whose
+    clipped branch is active; ratio_mean / ratio_max: of s_i) and over tokens for GSPO-token; approx_kl
+    is the token-level k3 estimate of KL(pi_old || pi_theta) in both.
+    """
+    eps_low, eps_high, mask, adv, log_ratio = _ratio_inputs(logps, old_logps, advantages, completion_mask,
+                                                           clip_eps, clip_eps_high, "gspo_policy_loss")
+    seq_log_ratio = masked_mean(log_ratio, mask, dim=-1)  # (B,)
     with torch.no_grad():
-        r = ratio.detach()  # (B, T)
-        lr = log_ratio.detach()  # (B, T)
-        clip_low = completion_mask & (advantages < 0) & (r < 1.0 - eps_low)  # (B, T)
-        clip_high = completion_mask & (advantages > 0) & (r > 1.0 + eps_high)  # (B, T)
-        metrics = {
-            "clip_frac": masked_mean((clipped.detach() > unclipped.detach()).float(), completion_mask).item(),
-            "clip_frac_low": masked_mean(clip_low.float(), completion_mask).item(),
-            "clip_frac_high": masked_mean(clip_high.float(), completion_mask).item(),
-            "approx_kl": masked_mean(r - 1.0 - lr, completion_mask).item(),
-            "ratio_mean": masked_mean(r, completion_mask).item(),
-            "ratio_max": r[completion_mask].max().item() if completion_mask.any() else float("nan"),
-        }
-    return loss, metrics
+        token_kl = masked_mean(log_ratio.exp() - 1.0 - log_ratio, mask).item()
+    if token_level:
+        log_s = seq_log_ratio.detach().unsqueeze(-1) + logps - logps.detach()  # (B, T)
+        s = torch.where(mask, log_s, torch.zeros_like(log_s)).exp()  # (B, T)
+        unclipped = -adv * s  # (B, T)
+        clipped = -adv * s.clamp(1.0 - eps_low, 1.0 + eps_high)  # (B, T)
+        per_token = torch.maximum(unclipped, clipped)  # (B, T)
+        loss = aggregate_token_loss(_weighted(per_token, weights, mask), mask, aggregation, max_tokens)
+        m = _ratio_metrics(s, log_s, adv, mask, eps_low, eps_high, clipped.detach() > unclipped.detach())
+        return loss, {**m, "approx_kl": token_kl}
+    if advantages.dim() != 1:
+        raise ValueError("gspo_policy_loss: sequence-level GSPO needs one advantage per sequence, shape (B,); "
+                         f"got {tuple(advantages.shape)} (use token_level=True for per-token advantages)")
+    if aggregation != "seq_mean_token_mean":
+        raise ValueError("gspo_policy_loss: sequence-level GSPO is a mean over sequences; aggregation must be "
+                         f"'seq_mean_token_mean', got {aggregation!r}")
+    has_tokens = mask.any(-1)  # (B,)
+    a = advantages.detach()  # (B,)
+    s = seq_log_ratio.exp()  # (B,)
+    unclipped = -a * s  # (B,)
+    clipped = -a * s.clamp(1.0 - eps_low, 1.0 + eps_high)  # (B,)
+    per_seq = torch.where(has_tokens, torch.maximum(unclipped, clipped), torch.zeros_like(s))  # (B,)
+    if weights is not None:
+        wt = weights.detach()
+        w = wt.masked_fill(~mask, float("-inf")).amax(-1)  # (B,) the sequence's weight
+        spread = w - wt.masked_fill(~mask, float("inf")).amin(-1)  # (B,) 0 when constant along the sequence
+        if bool((has_tokens & (spread > 1e-6 * w.abs().clamp(min=1.0))).any()):
+            raise ValueError("gspo_policy_loss: sequence-level GSPO takes one weight per sequence; `weights` vary "
+                             "along a sequence (use sequence-level rollout correction, or token_level=True)")
+        per_seq = per_seq * torch.where(has_tokens, w, torch.ones_like(w))
+    loss = per_seq.mean()
+    seq_mask = has_tokens.unsqueeze(-1)  # (B, 1): the metrics over sequences
+    m = _ratio_metrics(s.unsqueeze(-1), seq_log_ratio.unsqueeze(-1), a.unsqueeze(-1), seq_mask, eps_low, eps_high,
+                       (clipped.detach() > unclipped.detach()).unsqueeze(-1))
+    return loss, {**m, "approx_kl": token_kl}
+
+
+def cispo_policy_loss(
+    logps: torch.Tensor,
+    old_logps: torch.Tensor,
+    advantages: torch.Tensor,
+    completion_mask: torch.Tensor,
+    *,
+    clip_eps: float,
+    clip_eps_high: float | None = None,
+    aggregation: Aggregation = "token_mean",
+    max_tokens: int | None = None,
+    weights: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """CISPO (MiniMax-M1, Chen et al. 2025, eq. 4): clip the importance weight, not the update.
+
+    With r = pi_theta / pi_old per token and w = sg(clip(r, 1 - clip_eps, 1 + clip_eps_high)), the
+    gradient is -A w grad log pi_theta on EVERY completion token: PPO's clip zeroes the gradient of a
+    token whose ratio left the range (often the rare "fork" tokens, MiniMax-M1 §3.1), CISPO only caps
+    its weight. The per-token term is written -A w exp(log pi - sg(log pi)) (value -A w, the paper's
+    gradient; see the module notes) and reduced by `aggregate_token_loss(aggregation)` (the paper
+    uses the token mean). MiniMax-M1 sets no lower bound on w: clip_eps >= 1 does that here.
+    `weights` (B, T): the rollout-correction factors, as in `ppo_policy_loss`.
+
+    Metrics: clip_frac (fraction of tokens whose weight was capped, either side; = clip_frac_low +
+    clip_frac_high, here regardless of the advantage's sign), approx_kl, ratio_mean, ratio_max.
+    """
+    eps_low, eps_high, mask, adv, log_ratio = _ratio_inputs(logps, old_logps, advantages, completion_mask,
+                                                           clip_eps, clip_eps_high, "cispo_policy_loss")
+    ratio = log_ratio.exp()  # (B, T)
+    w = ratio.detach().clamp(max(0.0, 1.0 - eps_low), 1.0 + eps_high)  # (B, T), stop-gradient
+    surrogate = torch.where(mask, logps - logps.detach(), torch.zeros_like(logps)).exp()  # value 1, grad of log pi
+    per_token = -adv * w * surrogate  # (B, T)
+    loss = aggregate_token_loss(_weighted(per_token, weights, mask), mask, aggregation, max_tokens)
+    with torch.no_grad():
+        r = ratio.detach()
+        low, high = mask & (r < 1.0 - eps_low), mask & (r > 1.0 + eps_high)  # (B, T)
+        m = _ratio_metrics(ratio, log_ratio, adv, mask, eps_low, eps_high, low | high)
+        m.update({"clip_frac_low": masked_mean(low.float(), mask).item(),
+                  "clip_frac_high": masked_mean(high.float(), mask).item()})
+    return loss, m
+
+
+def policy_loss(
+    kind: PolicyLoss,
+    logps: torch.Tensor,
+    old_logps: torch.Tensor,
+    advantages: torch.Tensor,
+    completion_mask: torch.Tensor,
+    *,
+    clip_eps: float,
+    clip_eps_high: float | None = None,
+    aggregation: Aggregation = "token_mean",
+    max_tokens: int | None = None,
+    weights: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """The policy loss a trainer asks for by name: "clip" (`ppo_policy_loss`: PPO / GRPO / DAPO / Dr.
+    GRPO), "gspo" and "gspo_token" (`gspo_policy_loss`), "cispo" (`cispo_policy_loss`); same arguments."""
+    kw = dict(clip_eps=clip_eps, clip_eps_high=clip_eps_high, aggregation=aggregation, max_tokens=max_tokens,
+              weights=weights)
+    if kind == "clip":
+        return ppo_policy_loss(logps, old_logps, advantages, completion_mask, **kw)
+    if kind in ("gspo", "gspo_token"):
+        return gspo_policy_loss(logps, old_logps, advantages, completion_mask, token_level=kind == "gspo_token", **kw)
+    if kind == "cispo":
+        return cispo_policy_loss(logps, old_logps, advantages, completion_mask, **kw)
+    raise ValueError(f"policy_loss: unknown kind {kind!r}; expected 'clip', 'gspo', 'gspo_token' or 'cispo'")
+
+
+# ----------------------------------------------------------------------------- rollout correction
+def sampler_mismatch(train_logps: torch.Tensor, sampler_logps: torch.Tensor,
+                     completion_mask: torch.Tensor) -> dict[str, float]:
+    """How far the sampler's log-probs are from the trainer's on the sampled tokens (no grad).
+
+    `train_logps` (B, T): the trainer's log pi of the sampled tokens with the weights that sampled;
+    `sampler_logps` (B, T): the sampler's own. With log w = train - sampler on tokens drawn from the
+    sampler: mismatch/kl is the k3 estimate of KL(sampler || trainer), mean of w - 1 - log w (>= 0);
+    mismatch/max_ratio and mismatch/min_ratio are the extremes of w = pi_train / pi_sampler.
+    """
+    mask = completion_mask.bool()
+    with torch.no_grad():
+        log_w = torch.where(mask, train_logps.detach() - sampler_logps.detach(), torch.zeros_like(train_logps))
+        w = log_w.exp()
+        any_ = bool(mask.any())
+        return {"mismatch/kl": masked_mean(w - 1.0 - log_w, mask).item(),
+                "mismatch/max_ratio": w[mask].max().item() if any_ else float("nan"),
+                "mismatch/min_ratio": w[mask].min().item() if any_ else float("nan")}
+
+
+def rollout_correction(
+    train_logps: torch.Tensor,
+    sampler_logps: torch.Tensor,
+    completion_mask: torch.Tensor,
+    *,
+    kind: Correction,
+    level: CorrectionLevel = "token",
+    cap: float = 2.0,
+) -> tuple[torch.Tensor | None, torch.Tensor, dict[str, float]]:
+    """Importance weights for a sampler that is not the trainer's forward: (weights, loss mask, metrics).
+
+    When the samples come from pi_sampler (vLLM, bf16 weights, stale weights) but the loss's pi_old is
+    the trainer's own forward at rollout time, the policy gradient is off by w = pi_old / pi_sampler
+    per token. `train_logps` (B, T) are pi_old's log-probs, `sampler_logps` (B, T) the sampler's, both
+    fixed per rollout batch (no grad). log w = train - sampler per token; at `level="sequence"` every
+    token of a sequence gets the geometric mean of its token ratios (see the module notes).
+    - "tis": truncated importance sampling (Yao et al. 2025, "Your Efficient RL Framework Secretly
+      Brings You Off-Policy RL Training"): weights min(w, cap), the mask unchanged.
+    - "mask": masked importance sampling (IcePop, Ling Team 2025, "Every Step Evolves"): tokens (or
+      whole sequences) with w outside [1/cap, cap] leave the loss mask; the others keep weight w.
+    - "none": weights None and the mask as given.
+    The trainer multiplies its per-token policy loss by `weights` (the `weights` argument of the policy
+    losses) and uses the returned mask as its loss mask, so dropped tokens leave the normalisers too.
+
+    Metrics: correction/weight_mean and correction/max_weight (mean and largest applied weight over the kept
+    tokens: <= cap by construction), correction/truncated
+    (fraction of tokens whose weight was capped: tis) and correction/masked (fraction dropped: mask).
+    """
+    if cap <= 1.0:
+        raise ValueError(f"rollout_correction: cap must be > 1, got {cap}")
+    mask = completion_mask.bool()
+    if kind == "none":
+        return None, mask, {}
+    if kind not in ("tis", "mask"):
+        raise ValueError(f"rollout_correction: unknown kind {kind!r}; expected 'none', 'tis' or 'mask'")
+    if level not in ("token", "sequence"):
+        raise ValueError(f"rollout_correction: unknown level {level!r}; expected 'token' or 'sequence'")
+    with torch.no_grad():
+        log_w = torch.where(mask, train_logps.detach() - sampler_logps.detach(), torch.zeros_like(train_logps))
+        if level == "sequence":
+            log_w = masked_mean(log_w, mask, dim=-1).unsqueeze(-1).expand_as(log_w)  # (B, T)
+        w = log_w.exp()  # (B, T)
+        if kind == "tis":
+            weights, keep = w.clamp(max=cap), mask
+            metrics = {"correction/truncated": masked_mean((w > cap).float(), mask).item()}
+        else:
+            inside = (log_w >= -math.log(cap)) & (log_w <= math.log(cap))  # (B, T)
+            weights, keep = w, mask & inside
+            metrics = {"correction/masked": masked_mean((~inside).float(), mask).item()}
+        weights = torch.where(keep, weights, torch.ones_like(weights))
+        metrics["correction/weight_mean"] = masked_mean(weights, keep).item()
+        metrics["correction/max_weight"] = weights[keep].max().item() if keep.any() else float("nan")
+    return weights, keep, metrics
 
 
 def kl_penalty(

@@ -25,7 +25,8 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             PPOTrainer is importable it says so (a comparison would need its own driver).
   grpo      a GRPO step of `posttrain grpo` (the trainer, through the CLI) against TRL's GRPOTrainer on the
             same random-init tiny model, prompts, 2 prompts x 8 completions x <= 64 tokens, reward (length
-            verifier), beta 0, one pass; s/step.
+            verifier), beta 0, one pass; s/step. Then the same with GSPO on both sides (policy_loss=gspo;
+            TRL's importance_sampling_level="sequence", loss_type="grpo"; the paper's clip ranges 3e-4 / 4e-4).
   real      a real instruct model (--real DIR, default models/smollm2-135m-instruct; skipped when missing): the
             engine with fp32 and with bf16 weights (rollout.dtype) against fp32 `model.generate` at batch 1 / 16 /
             32 (word-math prompts through the chat template, T=1, exactly max_new_tokens), and one training step
@@ -903,10 +904,10 @@ grpo:
     sft.parent.mkdir(parents=True)
     shutil.copytree(root / "model", sft)
 
-    def ours() -> tuple[list[float], dict[str, float]]:
+    def ours(*overrides: str) -> tuple[list[float], dict[str, float]]:
         with contextlib.redirect_stdout(io.StringIO()):
             rc = posttrain_main(["grpo", "--recipe", str(recipe), f"run.output_dir={root / 'runs'}",
-                                 f"run.threads={args.threads}", "run.quiet=true", f"max_steps={steps}"])
+                                 f"run.threads={args.threads}", "run.quiet=true", f"max_steps={steps}", *overrides])
         assert rc == 0, "posttrain grpo failed"
         rows = [json.loads(l) for l in (root / "runs" / "bench-grpo" / "grpo" / "metrics.jsonl").read_text().splitlines()]
         rows = [r for r in rows if "time/step" in r][2:]
@@ -940,13 +941,13 @@ grpo:
             _sync(args.device)
             self.times.append(time.perf_counter() - self.t0)
 
-    def trl_run() -> list[float]:
+    def trl_run(**method) -> list[float]:
         targs = TRLConfig(output_dir=str(root / "trl"), per_device_train_batch_size=16, num_generations=8,
                           max_completion_length=args.max_new_tokens, temperature=1.0, beta=0.0, num_iterations=1,
                           learning_rate=1e-4, lr_scheduler_type="constant", max_grad_norm=1.0, max_steps=steps,
                           bf16=False, fp16=False, **_no_checkpointing(), use_cpu=args.device == "cpu",
                           logging_strategy="no", save_strategy="no", report_to=[], disable_tqdm=True,
-                          dataloader_num_workers=0, seed=0)
+                          dataloader_num_workers=0, seed=0, **method)
         timer = StepTimer()
         with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
             trainer = GRPOTrainer(model=copy.deepcopy(base), reward_funcs=[length_reward], args=targs,
@@ -986,11 +987,23 @@ def bench_grpo(args) -> dict:
     print(f"posttrain phases (medians): sample {phases['sample']:.3f} s, score {phases['score']:.3f} s, "
           f"update {phases['train']:.3f} s; {phases['completion_tokens']:.1f} completion tokens per row")
     print("ratio = TRL time per step / posttrain time per step, same model, prompts, group size and budget.")
+    # GSPO (Zheng et al. 2025) as both sides name it: one clipped ratio per sequence, the paper's clip ranges,
+    # a mean over sequences (TRL: importance_sampling_level="sequence" with loss_type="grpo")
+    g_ours, g_trl = [], []
+    for _ in range(rounds):
+        g_ours += ctx.runners["posttrain"]("policy_loss=gspo", "aggregation=seq_mean_token_mean", "clip_eps=3e-4",
+                                           "clip_eps_high=4e-4")[0]
+        g_trl += ctx.runners["trl"](importance_sampling_level="sequence", loss_type="grpo", epsilon=3e-4,
+                                    epsilon_high=4e-4)
+    go, gt = statistics.median(g_ours), statistics.median(g_trl)
+    print(f"{'TRL GRPOTrainer, GSPO (importance_sampling_level=sequence)':<58} {gt:>7.3f} {gt / go:>6.2f}x")
+    print(f"{'posttrain grpo policy_loss=gspo':<58} {go:>7.3f} {'1.00x':>7}")
     mem = peak_memory("grpo", ["posttrain", "trl"], args)
     print_memory(mem, {"posttrain": f"posttrain grpo ({steps} steps)", "trl": f"TRL GRPOTrainer ({steps} steps)"})
     ctx.cleanup()
     return dict(steps_per_run=steps, rounds=rounds, ours_s_per_step=mo, trl_s_per_step=mt, ratio=mt / mo,
-                ours_phases=phases, ours_times=t_ours, trl_times=t_trl, memory=mem)
+                ours_phases=phases, ours_times=t_ours, trl_times=t_trl, memory=mem,
+                gspo=dict(ours_s_per_step=go, trl_s_per_step=gt, ratio=gt / go))
 
 
 # ------------------------------------------------------------------ section: scaling

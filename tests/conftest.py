@@ -10,6 +10,8 @@
 - `tiny_rm(task, ...)`: a "reward model" made from that tiny model (its transformer under a one-output head with
   visible outputs, seeded), saved with the tokenizer; built once per session and settings.
 - `write_jsonl(path, rows)`: rows as a JSONL file; returns the path.
+- `perturbed_sampler(generate, sigma)`: a rollout `generate` whose recorded log-probs are off by N(0, sigma^2)
+  per token (seeded): a sampler that is not the trainer, for the rollout-correction tests.
 - `learning` (tests marked `learning`): the seed and thread count of a run whose result is a learned number,
   and `learning.above(name, value, bound)` / `learning.below(...)` to assert it. The defaults (seed 0, the
   thread count each test pins) are what CI runs; POSTTRAIN_TEST_SEED / POSTTRAIN_TEST_THREADS change them, and with
@@ -137,3 +139,20 @@ def _write_jsonl(path: Path, rows: list[dict]) -> Path:
 @pytest.fixture(scope="session")
 def write_jsonl():
     return _write_jsonl
+
+
+def _perturbed_sampler(generate, sigma: float, seed: int = 11):
+    def perturbed(*args, **kwargs):
+        out = generate(*args, **kwargs)
+        g = torch.Generator().manual_seed(seed)
+        for r in out:
+            noise = (sigma * torch.randn(len(r.logprobs), generator=g)).tolist()
+            r.logprobs = [a + b for a, b in zip(r.logprobs, noise)]
+            r.policy_logprobs = [a + b for a, b in zip(r.policy_logprobs, noise)]
+        return out
+    return perturbed
+
+
+@pytest.fixture(scope="session")
+def perturbed_sampler():
+    return _perturbed_sampler

@@ -24,6 +24,10 @@ Implementation details it follows, each with its source and flag (tested in test
  9. Evaluation (`eval_every`, `eval_pairs`, `eval_rows`, `proxy_rm`, `final_eval_rows`): held-out pair loss and
     implicit-reward accuracy; for a gold task `evaluation.policy_eval` (gold metrics, win-rate vs SFT, proxy RM
     reward, KL to the reference), the over-optimisation plot of Gao et al. 2022, `evaluation.compare_with_sft`.
+10. SimPO (Meng et al. 2024, eq. 6; `loss_type=simpo`, `beta`, `simpo_gamma`): -log sigmoid(beta (l_c - l_r) - gamma)
+    with l the per-token mean log-prob: reference-free (`losses.simpo_loss`), so no reference log-probs are taken.
+11. ORPO (Hong et al. 2024, eq. 6-7; `loss_type=orpo`, `beta` as ORPO's lambda, as TRL names it): the chosen
+    side's per-token NLL + lambda x -log sigmoid(log-odds ratio) (`losses.orpo_loss`): one stage, reference-free.
 
 Deviations and limits:
 - IPO on length-averaged log-probs (as TRL); Azar et al. define it on sequence log-likelihoods.
@@ -49,7 +53,7 @@ import torch
 
 from posttrain import evaluation, loop, models, preferences, scoring, tasks
 from posttrain.config import ConfigError, Resolved
-from posttrain.losses import dpo_loss
+from posttrain.losses import dpo_loss, orpo_loss, simpo_loss
 from posttrain.preferences import TokenizedPair, by_side, collate_pairs, pair_groups, pair_logps, reference_logps  # noqa: F401
 
 
@@ -61,8 +65,11 @@ class DPOConfig:
     """Held-out preference file; empty: the prefs stage's eval pairs (or 5% of train_file)."""
     beta: float = 0.1
     """KL strength: implicit reward = beta * (log pi - log pi_ref)."""
-    loss_type: Literal["sigmoid", "ipo", "hinge"] = "sigmoid"
-    """sigmoid: DPO; ipo: IPO on length-averaged log-probs; hinge: SLiC-HF calibration loss."""
+    loss_type: Literal["sigmoid", "ipo", "hinge", "simpo", "orpo"] = "sigmoid"
+    """sigmoid: DPO; ipo: IPO on length-averaged log-probs; hinge: SLiC-HF calibration loss; simpo: SimPO and orpo:
+    ORPO (both reference-free: beta is SimPO's beta, paper 2-10, and ORPO's lambda, paper 0.1-0.2)."""
+    simpo_gamma: float = 0.5
+    """SimPO's target reward margin gamma (>= 0; the paper tunes 0.3-1.6)."""
     label_smoothing: float = 0.0
     """Conservative DPO: assumed probability that a label is flipped (sigmoid only, <= 0.5)."""
     chosen_nll_weight: float = 0.0
@@ -131,11 +138,23 @@ class DPOConfig:
 
 
 # ----------------------------------------------------------------------------- the loss of pairs
+REFERENCE_FREE = ("simpo", "orpo")
+
+
 def pair_loss(cfg: DPOConfig, policy_logps: torch.Tensor, policy_tokens: torch.Tensor,
-              ref: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
-    """`dpo_loss` of one micro-batch: policy (2B,) sums + token counts, reference {chosen, rejected, *_tokens} (B,)."""
+              ref: dict[str, torch.Tensor] | None) -> tuple[torch.Tensor, dict[str, float]]:
+    """The preference loss of one micro-batch: policy (2B,) sums + token counts, reference {chosen, rejected,
+    *_tokens} (B,) (None for the reference-free losses)."""
     B = policy_logps.shape[0] // 2
     pc, pr = policy_logps[:B], policy_logps[B:]  # (B,), (B,)
+    if cfg.loss_type == "simpo":  # detail 10
+        loss, metrics = simpo_loss(pc, pr, policy_tokens[:B], policy_tokens[B:], beta=cfg.beta, gamma=cfg.simpo_gamma)
+    elif cfg.loss_type == "orpo":  # detail 11
+        loss, metrics = orpo_loss(pc, pr, policy_tokens[:B], policy_tokens[B:], lam=cfg.beta)
+    if cfg.loss_type in REFERENCE_FREE:
+        if cfg.chosen_nll_weight:
+            loss = loss + cfg.chosen_nll_weight * -(pc / policy_tokens[:B].clamp(min=1)).mean()
+        return loss, metrics
     rc, rr = ref["chosen"].to(pc.device), ref["rejected"].to(pc.device)  # (B,), (B,)
     if cfg.loss_type == "ipo":  # detail 3: length-averaged log-probs for policy and reference (TRL)
         pc, pr = pc / policy_tokens[:B], pr / policy_tokens[B:]
@@ -163,8 +182,9 @@ def micro_batch_loss(cfg: DPOConfig, model, ref_model, pool: Pool, idx: list[int
     """`pair_loss` of pool.pairs[idx] (reference: the pool's log-probs or `ref_model`), times len(idx) / batch_pairs."""
     batch = collate_pairs([pool.pairs[i] for i in idx], pad_id, cfg.share_prompt)
     s, n = pair_logps(model, batch)
-    with torch.no_grad():  # the reference: precomputed in the pool, or the live model's
-        ref = {k: v[torch.as_tensor(idx, dtype=torch.long)] for k, v in pool.ref.items()} if pool.ref is not None \
+    with torch.no_grad():  # the reference: precomputed in the pool, the live model's, or none (SimPO, ORPO)
+        ref = None if cfg.loss_type in REFERENCE_FREE else \
+            {k: v[torch.as_tensor(idx, dtype=torch.long)] for k, v in pool.ref.items()} if pool.ref is not None \
             else by_side(*pair_logps(ref_model, batch), len(idx))
     loss, m = pair_loss(cfg, s, n, ref)
     return loss * (len(idx) / batch_pairs), m
@@ -264,7 +284,8 @@ def refresh_pool(step: int, cfg: DPOConfig, policy, tokenizer, max_length: int, 
     _, pairs, _ = preferences.check_pairs([{**r, "_row": i + 1} for i, r in enumerate(new_rows)],
                                           f"online pairs (step {step})", "skip", tokenizer, max_length)
     pair_ref = reference_logps(ref.model_for(policy), pairs, tokenizer.pad_token_id, cfg.micro_batch_size or
-                               cfg.batch_size, cfg.share_prompt, budget) if cfg.reference == "precomputed" else None
+                               cfg.batch_size, cfg.share_prompt, budget) \
+        if cfg.reference == "precomputed" and cfg.loss_type not in REFERENCE_FREE else None
     metrics.log(step, {"online/pairs": len(pairs), "online/prompts_all_tied": st["prompts_all_tied"]}, console=False)
     say(f"[dpo] step {step}: online pairs regenerated from the policy: {len(pairs)} pairs "
         f"({st['prompts_all_tied']} of {len(idx)} prompts tied), labelled by {cfg.online_labeler}")
@@ -312,6 +333,8 @@ def train(res: Resolved, ensure) -> Path:
         raise ConfigError(f"dpo.label_smoothing applies to loss_type=sigmoid only (got loss_type={cfg.loss_type})")
     if not 0.0 <= cfg.label_smoothing <= 0.5 or cfg.beta <= 0:
         raise ConfigError("dpo.beta must be > 0 and dpo.label_smoothing in [0, 0.5]")
+    if cfg.simpo_gamma < 0:
+        raise ConfigError(f"dpo.simpo_gamma must be >= 0, got {cfg.simpo_gamma}")
     run_dir = res.stage_dir()
     data, sft_dir, tokenizer = load_pairs(res, ensure, cfg)  # a bad row stops the run before the run dir changes
     rm_dir = resolve_proxy_rm(res, ensure, cfg.proxy_rm, cfg.online and cfg.online_labeler == "rm")
@@ -323,7 +346,9 @@ def train(res: Resolved, ensure) -> Path:
     model = models.maybe_lora(res, models.load_model(sft_dir, res.model.dtype, device=dev), say)  # LoRA: adapters 0
     budget = models.token_budget(res.run.micro_batch_tokens, model)  # padded tokens per micro-batch (memory)
     ref = Reference(res, sft_dir, dev)
-    if cfg.reference == "precomputed":
+    if cfg.loss_type in REFERENCE_FREE:  # SimPO, ORPO: no reference log-probs at all (the KL eval loads the SFT model)
+        ref_train = None
+    elif cfg.reference == "precomputed":
         ref_train, ref.heldout = precompute_reference(cfg, model, data, pad_id, budget, say)
     else:
         ref_train, ref.live = None, models.load_reference(res, model, sft_dir, dev)
@@ -346,7 +371,8 @@ def train(res: Resolved, ensure) -> Path:
         evaluate(0, cfg, res.task.name, model, policy, tokenizer, data, ref, baseline, proxy, budget, metrics, say)
     say(f"[dpo] {len(data.train)} training pairs from {data.source}, batch {cfg.batch_size} (micro {micro} pairs, "
         f"<= {budget} tokens), "
-        f"{cfg.max_steps} steps, {cfg.loss_type} loss, beta {cfg.beta}, lr {cfg.lr}, reference {cfg.reference}"
+        f"{cfg.max_steps} steps, {cfg.loss_type} loss, beta {cfg.beta}, lr {cfg.lr}, "
+        + ("no reference (a reference-free loss)" if cfg.loss_type in REFERENCE_FREE else f"reference {cfg.reference}")
         + (f", online every {cfg.online_every} steps (labeler {cfg.online_labeler})" if cfg.online else ""))
     for step in range(start, cfg.max_steps):
         done = step + 1

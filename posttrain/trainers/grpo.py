@@ -29,7 +29,37 @@ Implementation details it follows, each a config field:
 10. RLOO (Ahmadian et al. 2024) and REINFORCE++ (Hu et al. 2025) as other critic-free baselines (estimator).
 11. pi_old from the rollout engine (old_logprobs=rollout: no extra forward): the raw log-probs at temperature 1,
     else those of softmax(logits / T), the distribution the loss uses (TRL, verl). With top_p < 1,
-    old_logprobs=recompute or vLLM rollouts (`posttrain.rollout.vllm_backend`): one batched no-grad forward.
+    old_logprobs=recompute, rollout_correction or vLLM rollouts (`posttrain.rollout.vllm_backend`): one batched
+    no-grad forward of the trainer, and the sampler's log-probs are compared with it on every row.
+12. The policy-loss family (policy_loss, `losses.policy_loss`): PPO's clipped token ratio (clip); GSPO (Zheng et
+    al. 2025): one clipped ratio per sequence, the geometric mean of its token ratios (gspo), and GSPO-token
+    (gspo_token); CISPO (MiniMax-M1, 2025): the clipped importance weight, stop-gradient, times the log-prob, so
+    no token's gradient is dropped (cispo). On-policy (mu = 1, minibatches = 1, pi_old the sampler) every ratio
+    is 1 and, with aggregation seq_mean_token_mean, all four give the same gradient (tested); they differ in
+    the later updates of a batch (mu > 1 or minibatches > 1) and under a mismatched sampler.
+13. Rollout correction (rollout_correction, `losses.rollout_correction`): the sampler (bf16 rollout weights, vLLM)
+    is not the trainer, so pi_old is recomputed by the trainer and each token's loss is weighted by w = pi_old /
+    pi_sampler truncated at C (tis: Yao et al. 2025) or dropped when w leaves [1/C, C] (mask: IcePop), per token
+    or per sequence. Every step where the sampler's log-probs can be compared with the trainer's logs the gap
+    (mismatch/kl = KL(sampler || trainer), k3; mismatch/max_ratio, mismatch/min_ratio): ~0 with the built-in
+    fp32 engine, which samples with the trainer's own forward, by construction (tested below 1e-6).
+
+Named methods as settings (other fields at their defaults; the loss family and the aggregations are orthogonal,
+except where a config error says otherwise):
+
+    method        policy_loss  aggregation              std_scale  other settings
+    GRPO          clip         seq_mean_token_mean      group      beta 0.04 (DeepSeekMath)
+    DAPO          clip         token_mean               group      clip_eps_high 0.28, zero_variance resample,
+                                                                   mask_truncated true (beta 0, the default)
+    Dr. GRPO      clip         seq_mean_token_sum_norm  none
+    GSPO          gspo         seq_mean_token_mean      group      clip_eps 3e-4, clip_eps_high 4e-4, minibatches 4
+    GSPO-token    gspo_token   any                      group      as GSPO; per-token advantages allowed
+    CISPO         cispo        token_mean               group      clip_eps 1 (no lower bound), clip_eps_high
+    + TIS         any          any                      any        rollout_correction tis, rollout_correction_cap 2
+    + IcePop      any          any                      any        rollout_correction mask (sequence level for gspo)
+
+Config errors: policy_loss=gspo with another aggregation (its loss is a mean over sequences), policy_loss=gspo
+with a token-level rollout correction (one ratio per sequence takes one weight per sequence), a cap <= 1.
 
 Rewards come through `posttrain.scoring` only (a verifier spec such as "0.9*countdown + 0.1*format", a reward
 model, or both weighted). Checks run in a `verifiers.runner.VerifierPool` under a hard time limit: a hung or
@@ -55,6 +85,10 @@ Deviations and limits:
   with beta > 0 those rows' KL term is dropped too. "keep" trains on them as GRPO as published does.
 - The k3 KL term's gradient is that of KL(pi_ref || pi), not KL(pi || pi_ref) (see
   `losses.kl_penalty`); GRPO as published has the same property.
+- Sequence-level rollout correction uses the geometric mean of the token ratios, not their product
+  (see `losses`); CISPO's loss value is the clipped-weight surrogate -A w, its gradient the paper's.
+- CISPO's published cap (eps_high) is not stated here as a default: clip_eps_high keeps its meaning,
+  the upper clip range, for every policy loss, and recipes set it.
 """
 from __future__ import annotations
 
@@ -74,7 +108,7 @@ from posttrain.problems import (PREFLIGHT_ROWS, Group, HeldOut, Problem, Reward,
 from posttrain.advantages import group_advantages, zero_variance_groups
 from posttrain.config import ConfigError, Resolved
 from posttrain.logprobs import masked_mean, sequence_logprobs
-from posttrain.losses import aggregate_token_loss, kl_penalty, ppo_policy_loss
+from posttrain.losses import aggregate_token_loss, kl_penalty, policy_loss, rollout_correction, sampler_mismatch
 
 @dataclass
 class GRPOConfig:
@@ -114,8 +148,11 @@ class GRPOConfig:
     """Advantage baseline: grpo (group mean), rloo (leave-one-out), reinforce_pp (REINFORCE++, batch-normalised)."""
     std_scale: Literal["group", "batch", "none"] = "group"
     """Advantage divisor: group std (GRPO), batch std, none (Dr. GRPO); reinforce_pp needs batch."""
+    policy_loss: Literal["clip", "gspo", "gspo_token", "cispo"] = "clip"
+    """Policy loss: clip (PPO's clipped token ratio: GRPO, DAPO, Dr. GRPO), gspo (one clipped ratio per sequence,
+    GSPO), gspo_token (GSPO-token), cispo (clipped stop-gradient IS weight x log-prob, CISPO); see the table."""
     clip_eps: float = 0.2
-    """PPO clip range of the ratio (lower side, and upper side unless clip_eps_high is set)."""
+    """Clip range of the ratio (lower side, and upper side unless clip_eps_high is set); GSPO used 3e-4."""
     clip_eps_high: float | None = None
     """Upper clip range (DAPO clip-higher, e.g. 0.28); null: clip_eps (symmetric)."""
     beta: float = 0.0
@@ -132,7 +169,15 @@ class GRPOConfig:
     """Rows per forward pass at most (gradient accumulation); 0: no row cap. `run.micro_batch_tokens` also caps
     the padded tokens of each (auto: ~2 GiB of activations for the model)."""
     old_logprobs: Literal["rollout", "recompute"] = "rollout"
-    """pi_old: the rollout engine's log-probs (no extra forward) or a no-grad recompute."""
+    """pi_old: the rollout engine's log-probs (no extra forward) or a no-grad recompute (rollout_correction,
+    top_p < 1 at temperature != 1 and vLLM rollouts recompute whatever this says)."""
+    rollout_correction: Literal["none", "tis", "mask"] = "none"
+    """Correct for a sampler that is not the trainer (bf16 rollout weights, vLLM): tis (truncated importance
+    weights min(w, cap)) or mask (drop tokens whose w = pi_old / pi_sampler leaves [1/cap, cap], IcePop)."""
+    rollout_correction_level: Literal["token", "sequence"] = "token"
+    """Weights per token, or per sequence (the geometric mean of its token ratios; gspo needs this)."""
+    rollout_correction_cap: float = 2.0
+    """C of rollout_correction (> 1)."""
     mask_truncated: bool = False
     """Give completions cut at max_new_tokens no loss (DAPO overlong filtering); they still count in their group."""
     zero_variance: Literal["keep", "skip", "resample"] = "skip"
@@ -200,6 +245,14 @@ def check_config(cfg: GRPOConfig) -> None:
         raise bad(f"minibatches={cfg.minibatches} exceeds the {cfg.prompts_per_step * cfg.group_size} rows of a step")
     if cfg.verifier_workers < 0 or cfg.verifier_timeout_s < 0 or cfg.max_resample_rounds < 0:
         raise bad("verifier_workers, verifier_timeout_s and max_resample_rounds must be >= 0")
+    if cfg.policy_loss in ("gspo",) and cfg.aggregation != "seq_mean_token_mean":
+        raise bad(f"policy_loss=gspo is a mean over sequences (GSPO eq. 5): set aggregation=seq_mean_token_mean "
+                  f"(got {cfg.aggregation}), or use policy_loss=gspo_token for a token-level aggregation")
+    if cfg.policy_loss == "gspo" and cfg.rollout_correction != "none" and cfg.rollout_correction_level != "sequence":
+        raise bad("policy_loss=gspo has one ratio per sequence, so its rollout correction must be per sequence too: "
+                  "set rollout_correction_level=sequence (or use policy_loss=gspo_token)")
+    if not cfg.rollout_correction_cap > 1:
+        raise bad(f"rollout_correction_cap must be > 1, got {cfg.rollout_correction_cap}")
     if cfg.verifier == "none" and cfg.reward_model == "none":
         raise bad("verifier=none and reward_model=none: there is no reward; set one of them")
 
@@ -286,29 +339,47 @@ def loss_rows(cfg: GRPOConfig, sb: StepBatch, accelerator, pad_id: int, old_mode
                                device=loss_mask.device)] = 0
     # pi_old from the engine: raw log-probs at temperature 1, or (temperature != 1, no top-p) the log-probs
     # of the distribution it sampled, softmax(logits / T), which is the one the loss uses; else recomputed.
+    sampler_logps = batch.policy_logprobs if cfg.temperature == 1.0 else batch.logprobs  # (n, T)
     rows = {"input_ids": batch.input_ids, "attention_mask": batch.attention_mask, "loss_mask": loss_mask,
-            "advantages": adv.to(accelerator.device),
-            "old_logps": batch.policy_logprobs if cfg.temperature == 1.0 else batch.logprobs}
+            "advantages": adv.to(accelerator.device), "old_logps": sampler_logps}
     micro = cfg.micro_batch_size or len(rows_idx)
-    if old_model is not None:
+    if old_model is not None:  # the trainer's pi_old; the sampler's stay for `correct_rows`
         rows["old_logps"] = sharding.sharded_logprobs(accelerator, old_model, batch, micro, cfg.temperature, budget)
+        rows["sampler_logps"] = sampler_logps
     if ref_model is not None:
         rows["ref_logps"] = sharding.sharded_logprobs(accelerator, ref_model, batch, micro, cfg.temperature, budget)
     return rows
 
 
+def correct_rows(cfg: GRPOConfig, rows: dict[str, torch.Tensor] | None) -> dict[str, float]:
+    """Where pi_old was recomputed by the trainer, the sampler's log-probs are a second opinion: the gap between
+    the two over every row (`losses.sampler_mismatch`: mismatch/kl, mismatch/max_ratio, mismatch/min_ratio) and,
+    with rollout_correction, the importance weights `rows["is_weights"]` and the loss mask without the tokens
+    it drops (`losses.rollout_correction`); their metrics. The rows change in place."""
+    sampler = None if rows is None else rows.pop("sampler_logps", None)
+    if sampler is None:
+        return {}
+    m = sampler_mismatch(rows["old_logps"], sampler, rows["loss_mask"])
+    weights, keep, cm = rollout_correction(rows["old_logps"], sampler, rows["loss_mask"], kind=cfg.rollout_correction,
+                                           level=cfg.rollout_correction_level, cap=cfg.rollout_correction_cap)
+    rows["loss_mask"] = keep.to(rows["loss_mask"].dtype)
+    if weights is not None:
+        rows["is_weights"] = weights
+    return {**m, **cm}
+
+
 def grpo_loss(cfg: GRPOConfig, model, mb: dict[str, torch.Tensor], scale: float,
               with_entropy: bool, mismatch: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
     """The GRPO loss of one micro-batch (policy term + beta * KL term, same aggregation), times `scale`.
-    `mismatch`: also the sampler-trainer gap `mismatch/kl` (old_logps are the sampler's and the weights are the
-    ones it sampled with: the first minibatch of the first pass)."""
+    `mismatch`: also the sampler-trainer gap `losses.sampler_mismatch` (old_logps are the sampler's and the weights
+    are the ones it sampled with: the first minibatch of the first pass)."""
     loss_mask = mb["loss_mask"]
     logps, entropy = sequence_logprobs(model, mb["input_ids"], mb["attention_mask"], loss_mask,
                                        temperature=cfg.temperature, return_entropy=with_entropy,
                                        entropy_grad=False)  # (b, T); the entropy is a metric here
-    loss, m = ppo_policy_loss(logps, mb["old_logps"], mb["advantages"], loss_mask, clip_eps=cfg.clip_eps,
-                              clip_eps_high=cfg.clip_eps_high, aggregation=cfg.aggregation,
-                              max_tokens=cfg.max_new_tokens)
+    loss, m = policy_loss(cfg.policy_loss, logps, mb["old_logps"], mb["advantages"], loss_mask, clip_eps=cfg.clip_eps,
+                          clip_eps_high=cfg.clip_eps_high, aggregation=cfg.aggregation, max_tokens=cfg.max_new_tokens,
+                          weights=mb.get("is_weights"))
     m = {"policy_loss": float(loss.detach()), **m}
     if cfg.beta > 0:
         kl = kl_penalty(logps, mb["ref_logps"], cfg.kl_estimator)  # (b, T)
@@ -318,7 +389,7 @@ def grpo_loss(cfg: GRPOConfig, model, mb: dict[str, torch.Tensor], scale: float,
     if with_entropy:
         m["entropy"] = float(masked_mean(entropy.detach(), loss_mask.bool()))
     if mismatch:
-        m["mismatch/kl"] = float(masked_mean(kl_penalty(mb["old_logps"], logps.detach(), "k3"), loss_mask.bool()))
+        m.update(sampler_mismatch(logps, mb["old_logps"], loss_mask))
     return loss * scale, m
 
 
@@ -357,7 +428,8 @@ def update(cfg: GRPOConfig, accelerator, model, optimizer, scheduler, rows: dict
                                       step + 1, weights=[tokens for _, _, tokens in mbs])
             for k, v in out.items():
                 upd[k].append(v)
-    m = {k.removesuffix("_sum"): (max(v) if k == "ratio_max" else sum(v) / len(v)) for k, v in upd.items()}
+    pick = {"max": max, "min": min, "": lambda v: sum(v) / len(v)}
+    m = {k.removesuffix("_sum"): pick[loop.metric_extreme(k)](v) for k, v in upd.items()}
     m.update({"rows/trained": float(len(usable)), "updates": float(len(upd.get("loss", [])))})
     m.setdefault("loss", 0.0)
     return m
@@ -374,7 +446,10 @@ def describe_run(cfg: GRPOConfig, reward: Reward, n_problems: int, rm_dir: Path 
         f"{cfg.reward_model_weight:g} * reward model {rm_dir}" if reward.rm_scorer is not None else "") if x)
     return (f"[grpo] {n_problems} training problems, {cfg.prompts_per_step} prompts x {cfg.group_size} samples per "
             f"step, {cfg.max_steps} steps ({cfg.mu} pass(es) x {cfg.minibatches} update(s) each); reward: {desc}; "
-            f"{cfg.estimator} advantages ({cfg.std_scale} std), {cfg.aggregation}, beta {cfg.beta}, zero-variance "
+            f"{cfg.estimator} advantages ({cfg.std_scale} std), {cfg.policy_loss} policy loss, {cfg.aggregation}, "
+            + (f"rollout correction {cfg.rollout_correction} ({cfg.rollout_correction_level}, cap "
+               f"{cfg.rollout_correction_cap:g}), " if cfg.rollout_correction != "none" else "")
+            + f"beta {cfg.beta}, zero-variance "
             f"groups: {cfg.zero_variance}; rollouts: {default_backend()} backend"
             + (" (pi_old recomputed)" if recompute_old else "") + f"; {world} process(es) on {device}"
             + (f"; micro-batches <= {budget} tokens" if budget else ""))
@@ -505,9 +580,10 @@ def train(res: Resolved, ensure) -> Path:
         held = HeldOut(eval_problems, reward, cfg.max_new_tokens, min(cfg.eval_rows, len(eval_problems)),
                        min(cfg.final_eval_rows, len(eval_problems)),
                        start="base" if res.model.start_from == "base" else "SFT")
-        # pi_old recomputed: asked for, a truncated sampler (top-p) at temperature != 1, or vLLM rollouts
-        recompute_old = cfg.old_logprobs == "recompute" or (cfg.temperature != 1.0 and cfg.top_p < 1.0) \
-            or default_backend() == "vllm"
+        # pi_old recomputed: asked for, rollout correction (it weighs pi_old against the sampler), a truncated sampler
+        # (top-p) at temperature != 1, or vLLM rollouts
+        recompute_old = cfg.old_logprobs == "recompute" or cfg.rollout_correction != "none" \
+            or (cfg.temperature != 1.0 and cfg.top_p < 1.0) or default_backend() == "vllm"
         optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
         scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps * cfg.mu * cfg.minibatches,
                                          cfg.schedule, cfg.min_lr_ratio)  # it counts optimizer updates
@@ -555,6 +631,7 @@ def train(res: Resolved, ensure) -> Path:
                 t0 = time.time()
                 rows = loss_rows(cfg, sb, accelerator, tokenizer.pad_token_id, policy if recompute_old else None,
                                  ref_model, budget)
+                m.update(correct_rows(cfg, rows))  # pi_old recomputed: the sampler's gap, rollout correction
                 # ---- update: mu passes x minibatches of clipped-ratio steps
                 m.update(update(cfg, accelerator, model, optimizer, scheduler, rows, step, budget,
                                 sampler_old=not recompute_old))

@@ -20,7 +20,9 @@ tests/posttrain/trainers/test_ppo.py (the losses and GAE themselves in test_loss
  6. Reward whitening (`whiten_rewards`, off): TRL's, per-token rewards whitened over the batch, mean kept.
  7. GAE (`gamma`, `lam`): gamma = 1 (Huang 2022: no discount inside a completion), lam = 0.95.
  8. Advantage whitening (`whiten_advantages`): over the batch's completion tokens, after GAE (`masked_whiten`).
- 9. Clipped surrogate (`clip_eps`), token-mean aggregation (`losses.ppo_policy_loss`).
+ 9. Clipped surrogate (`clip_eps`), token-mean aggregation (`losses.ppo_policy_loss`); `policy_loss` swaps in the
+    token-level members of GRPO's family (`losses.policy_loss`): cispo (CISPO's clipped stop-gradient weight)
+    or gspo_token (GSPO-token; sequence-level gspo needs one advantage per sequence and GAE gives one per token).
 10. Value clipping (`value_clip`): around the rollout-time values (`losses.value_loss`; 0: plain squared error).
 11. Value model init (`value_init`): "reward" copies the reward model (lm-human-preferences; Huang 2022); "policy"
     is the SFT transformer under a new, seeded head.
@@ -29,8 +31,10 @@ tests/posttrain/trainers/test_ppo.py (the losses and GAE themselves in test_loss
 14. Logits divided by the sampling temperature (`scale_logits_by_temperature`; Huang 2022) in every update log-prob.
 15. No top-k / top-p at rollout time (not a flag): the engine's log-probs stay the policy's.
 16. Old log-probs recomputed after the rollout (not a flag): the first ratio is exactly 1. The sampler's own log-probs
-    are compared with them: rollout/logprob_gap (max abs) and mismatch/kl (KL(sampler || trainer), k3; > 0 with
-    rollout.dtype=bfloat16 or run.mixed_precision=bf16).
+    are compared with them: rollout/logprob_gap (max abs), mismatch/kl (KL(sampler || trainer), k3; > 0 with
+    rollout.dtype=bfloat16 or run.mixed_precision=bf16), mismatch/max_ratio and min_ratio; `rollout_correction`
+    (tis / mask, `losses.rollout_correction`) weighs or drops the policy loss's tokens by pi_old / pi_sampler, as
+    GRPO's detail 13 (the value loss keeps every token).
 17. Entropy bonus (`entropy_coef`): 0 by default, as in the RLHF implementations Huang et al. study.
 18. Several epochs (`ppo_epochs`) of minibatches (`minibatch_size`), reshuffled every epoch (seeded).
 19. Learning-rate annealing (`schedule`): linear to 0 over all optimizer steps by default.
@@ -66,7 +70,8 @@ from posttrain.data import row_spans, token_groups
 from posttrain.lean import train as lean
 from posttrain.lean.support import lean_support
 from posttrain.logprobs import masked_mean, masked_sum, masked_whiten, sequence_logprobs
-from posttrain.losses import kl_penalty, ppo_policy_loss, value_loss
+from posttrain import losses
+from posttrain.losses import kl_penalty, rollout_correction, sampler_mismatch, value_loss
 from posttrain.rollout import SamplingParams, collate_rollouts, generate
 from posttrain.scoring import GoldScorer, RewardModelScorer
 
@@ -108,6 +113,14 @@ class PPOConfig:
     """GAE lambda."""
     clip_eps: float = 0.2
     """Policy ratio clipping range."""
+    policy_loss: Literal["clip", "gspo", "gspo_token", "cispo"] = "clip"
+    """clip (PPO's surrogate), cispo (CISPO), gspo_token (GSPO-token); gspo is GRPO's only (per-sequence advantages)."""
+    rollout_correction: Literal["none", "tis", "mask"] = "none"
+    """Sampler-trainer correction of the policy loss: tis (weights min(w, cap)), mask (drop w outside [1/cap, cap])."""
+    rollout_correction_level: Literal["token", "sequence"] = "token"
+    """Per token, or per sequence (geometric mean of its token ratios)."""
+    rollout_correction_cap: float = 2.0
+    """C of rollout_correction (> 1)."""
     value_clip: float = 0.2
     """Value clipping range around the rollout-time values (0: unclipped squared error)."""
     entropy_coef: float = 0.0
@@ -172,6 +185,11 @@ def check_config(cfg: PPOConfig, world: int = 1) -> None:
                           f"got {cfg.temperature}")
     if cfg.clip_eps <= 0:
         raise ConfigError(f"ppo.clip_eps must be > 0, got {cfg.clip_eps}")
+    if cfg.policy_loss == "gspo":
+        raise ConfigError("ppo.policy_loss=gspo needs one advantage per sequence, and PPO's GAE gives one per token: "
+                          "use policy_loss=gspo_token (GSPO-token), or GRPO for sequence-level GSPO")
+    if not cfg.rollout_correction_cap > 1:
+        raise ConfigError(f"ppo.rollout_correction_cap must be > 1, got {cfg.rollout_correction_cap}")
     for name in ("value_clip", "reward_clip", "missing_eos_penalty", "entropy_coef", "kl_coef", "lr", "value_lr"):
         if getattr(cfg, name) < 0:
             raise ConfigError(f"ppo.{name} must be >= 0, got {getattr(cfg, name)}")
@@ -290,9 +308,13 @@ def advantages_and_returns(cfg: PPOConfig, scores: torch.Tensor, logps: torch.Te
 
 
 def policy_loss(cfg: PPOConfig, logps: torch.Tensor, entropy: torch.Tensor, old_logps: torch.Tensor,
-                advantages: torch.Tensor, completion_mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
-    """Details 9 and 17: clipped surrogate minus the entropy bonus."""
-    loss, m = ppo_policy_loss(logps, old_logps, advantages, completion_mask, clip_eps=cfg.clip_eps)
+                advantages: torch.Tensor, completion_mask: torch.Tensor, policy_mask: torch.Tensor | None = None,
+                weights: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Details 9, 16 and 17: the policy loss (clipped surrogate by default) over `policy_mask` (the completion tokens
+    the rollout correction keeps; default all) with its importance `weights`, minus the entropy bonus."""
+    loss, m = losses.policy_loss(cfg.policy_loss, logps, old_logps, advantages,
+                                 completion_mask if policy_mask is None else policy_mask, clip_eps=cfg.clip_eps,
+                                 weights=weights)
     ent = masked_mean(entropy, completion_mask.bool())
     if cfg.entropy_coef:
         loss = loss - cfg.entropy_coef * ent
@@ -411,7 +433,8 @@ def policy_update_loss(accelerator, policy, cfg: PPOConfig, mb: dict, n_local: f
     """Details 9, 14, 17 on this process's rows of a minibatch, scaled to the global minibatch's token mean."""
     logps, ent = sequence_logprobs(policy, mb["input_ids"], mb["attention_mask"], mb["completion_mask"],
                                    temperature=logprob_temperature(cfg), return_entropy=True)  # (b, T), (b, T)
-    loss, m = policy_loss(cfg, logps, ent, mb["old_logps"], mb["advantages"], mb["completion_mask"])
+    loss, m = policy_loss(cfg, logps, ent, mb["old_logps"], mb["advantages"], mb["completion_mask"], mb["policy_mask"],
+                          mb.get("is_weights"))
     return sharding.token_share(accelerator, loss, n_local, n_global), m
 
 
@@ -497,7 +520,9 @@ def train(res: Resolved, ensure) -> Path:
         old_values = rollout_values(accelerator, m.value, batch, cfg.minibatch_size, budget)  # (B, T)
         engine_lp = batch.logprobs if cfg.scale_logits_by_temperature else batch.policy_logprobs  # (B, T)
         lp_gap = float((old_logps - engine_lp).abs().masked_fill(~cm, 0).max())
-        mismatch = float(masked_mean(kl_penalty(engine_lp, old_logps, "k3"), cm))  # KL(sampler || trainer)
+        mismatch = sampler_mismatch(old_logps, engine_lp, cm)  # KL(sampler || trainer), ratio extremes
+        is_w, policy_mask, corr = rollout_correction(old_logps, engine_lp, cm, kind=cfg.rollout_correction,
+                                                     level=cfg.rollout_correction_level, cap=cfg.rollout_correction_cap)
 
         # ---- KL-penalised per-token rewards, GAE, whitening (global: every process holds the same tensors)
         seq_kl = masked_sum(old_logps - ref_logps, cm, -1)  # (B,) k1 per sequence, the controller's quantity
@@ -507,7 +532,8 @@ def train(res: Resolved, ensure) -> Path:
         # rows r, r + W, ..., in micro-batches of at most `budget` tokens; losses scaled to their share of the
         # minibatch's global token mean, see sharding.token_share)
         data = dict(input_ids=batch.input_ids, attention_mask=batch.attention_mask, completion_mask=cm,  # (B, T) each
-                    old_logps=old_logps, old_values=old_values, advantages=adv["advantages"], returns=adv["returns"])
+                    policy_mask=policy_mask, old_logps=old_logps, old_values=old_values, advantages=adv["advantages"],
+                    returns=adv["returns"], **({} if is_w is None else {"is_weights": is_w}))
         sums: dict[str, float] = {}
         with loop.naming_checkpoint(ckpt, f"PPO iteration {done}"):
             for epoch in range(cfg.ppo_epochs):
@@ -516,9 +542,10 @@ def train(res: Resolved, ensure) -> Path:
                     whole = torch.as_tensor(perm[j * cfg.minibatch_size:(j + 1) * cfg.minibatch_size], device=dev)
                     mbs, n_all = minibatch_parts(data, whole, accelerator, budget), float(cm[whole].sum())
                     w = [float(b["completion_mask"].sum()) / n_all for b in mbs]  # shares of the minibatch's tokens
+                    n_pol = max(1.0, float(policy_mask[whole].sum()))  # the policy loss's tokens (rollout correction)
                     mp = loop.optimizer_step(accelerator, m.policy, opt_p, sched_p, mbs, lambda b: policy_update_loss(
-                        accelerator, m.policy, cfg, b, float(b["completion_mask"].sum()), n_all), cfg.max_grad_norm,
-                        done, weights=w)
+                        accelerator, m.policy, cfg, b, float(b["policy_mask"].sum()), n_pol), cfg.max_grad_norm,
+                        done, weights=[float(b["policy_mask"].sum()) / n_pol for b in mbs])
                     mv = loop.optimizer_step(accelerator, m.value, opt_v, sched_v, mbs, lambda b: value_update_loss(
                         accelerator, m.value, cfg, b, float(b["completion_mask"].sum()), n_all), cfg.max_grad_norm,
                         done, weights=w)
@@ -538,7 +565,7 @@ def train(res: Resolved, ensure) -> Path:
                 "rollout/kl": mean_kl, "rollout/kl_penalty": float(masked_sum(adv["kl"], cm, -1).mean()),
                 "kl_coef": kl_coef_used, "rollout/length": float(cm.sum(-1).float().mean()),
                 "rollout/no_eos": float((~ended).float().mean()), "rollout/logprob_gap": lp_gap,
-                "mismatch/kl": mismatch,
+                **mismatch, **corr,
                 "rollout/returns": float(masked_mean(adv["returns"], cm)),
                 **{k: v / (cfg.ppo_epochs * n_mb) for k, v in sums.items()},
                 "time/rollout_s": t["sample"], "time/score_s": t["score"], "time/iteration_s": time.time() - t_it})

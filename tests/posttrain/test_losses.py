@@ -109,6 +109,53 @@ def test_dpo_rejects_bad_arguments():
 
 
 # ----------------------------------------------------------------------------- Bradley-Terry
+def test_simpo_hand_computed_and_gradient():
+    # pair 1: chosen -4 over 2 tokens (mean -2), rejected -9 over 3 (mean -3); pair 2: chosen -3 over 1, rejected -2
+    # over 2 (means -3 and -1). beta 2, gamma 0.5: rewards -4 / -6 and -6 / -2, arguments 2 - 0.5 = 1.5 and -4.5
+    pc = torch.tensor([-4.0, -3.0], requires_grad=True)
+    pr = torch.tensor([-9.0, -2.0], requires_grad=True)
+    nc, nr = torch.tensor([2.0, 1.0]), torch.tensor([3.0, 2.0])
+    loss, m = losses.simpo_loss(pc, pr, nc, nr, beta=2.0, gamma=0.5)
+    assert loss.item() == pytest.approx((math.log1p(math.exp(-1.5)) + math.log1p(math.exp(4.5))) / 2)
+    assert loss.item() == pytest.approx(2.3562305, abs=1e-6)  # (0.2014133 + 4.5110476) / 2
+    assert m["rewards/chosen"] == pytest.approx(-5.0) and m["rewards/rejected"] == pytest.approx(-4.0)
+    assert m["rewards/margin"] == pytest.approx(-1.0) and m["rewards/accuracy"] == pytest.approx(0.5)
+    assert m["logps/chosen"] == pytest.approx(-2.5) and m["logps/rejected"] == pytest.approx(-2.0)
+    loss.backward()
+    # d/d log pi(y_c) = -sigmoid(-z) * beta / |y_c| / B; d/d log pi(y_r) = +sigmoid(-z) * beta / |y_r| / B
+    s1, s2 = _sig(-1.5), _sig(4.5)
+    torch.testing.assert_close(pc.grad, torch.tensor([-s1 * 2 / 2 / 2, -s2 * 2 / 1 / 2]))
+    torch.testing.assert_close(pr.grad, torch.tensor([s1 * 2 / 3 / 2, s2 * 2 / 2 / 2]))
+    # no reference, and a longer side is not favoured: doubling a side's tokens and log-prob changes nothing
+    again, _ = losses.simpo_loss(pc * 2, pr, nc * 2, nr, beta=2.0, gamma=0.5)
+    assert again.item() == pytest.approx(loss.item())
+    with pytest.raises(ValueError, match="gamma"):
+        losses.simpo_loss(pc, pr, nc, nr, beta=2.0, gamma=-1.0)
+
+
+def test_orpo_hand_computed_and_gradient():
+    # chosen: 2 tokens of probability 0.5 (mean log-prob log 0.5: odds 1, log-odds 0); rejected: 3 tokens of 0.2
+    # (odds 0.25, log-odds log 0.25). Log-odds ratio log 4; L_OR = log(1 + 1/4); L_SFT = log 2; lambda 0.1
+    pc = torch.tensor([2 * math.log(0.5)], requires_grad=True)
+    pr = torch.tensor([3 * math.log(0.2)], requires_grad=True)
+    loss, m = losses.orpo_loss(pc, pr, torch.tensor([2.0]), torch.tensor([3.0]), lam=0.1)
+    assert loss.item() == pytest.approx(LOG2 + 0.1 * math.log(1.25))
+    assert loss.item() == pytest.approx(0.7154616, abs=1e-6)
+    assert m["nll"] == pytest.approx(LOG2) and m["odds_ratio_loss"] == pytest.approx(math.log(1.25))
+    assert m["log_odds_ratio"] == pytest.approx(math.log(4.0)) and m["rewards/accuracy"] == 1.0
+    assert m["rewards/margin"] == pytest.approx(0.1 * math.log(4.0))
+    loss.backward()
+    # l = log pi / n; d log-odds / d l = 1 / (1 - P); dL_OR / d(ratio) = -sigmoid(-ratio) = -1/5
+    # chosen: (-1 (NLL) + 0.1 * -0.2 * 1 / (1 - 0.5)) / 2 tokens; rejected: 0.1 * 0.2 * 1 / (1 - 0.2) / 3 tokens
+    assert pc.grad.item() == pytest.approx((-1 - 0.1 * 0.2 * 2) / 2)
+    assert pr.grad.item() == pytest.approx(0.1 * 0.2 * 1.25 / 3)
+    zero, _ = losses.orpo_loss(pc, pr, torch.tensor([2.0]), torch.tensor([3.0]), lam=0.0)
+    assert zero.item() == pytest.approx(LOG2)  # lambda 0: plain SFT on the chosen side
+    # a near-certain side (mean log-prob 0) stays finite
+    sure, _ = losses.orpo_loss(torch.tensor([0.0]), pr.detach(), torch.tensor([2.0]), torch.tensor([3.0]), lam=0.1)
+    assert math.isfinite(sure.item())
+
+
 def test_bradley_terry_hand_computed_and_gradient():
     rc = torch.tensor([2.0, 0.0], requires_grad=True)
     rr = torch.tensor([1.0, 1.0])
@@ -340,3 +387,203 @@ def test_masked_reductions_come_from_logprobs():
     assert losses.masked_mean is logprobs.masked_mean and losses.masked_sum is logprobs.masked_sum
     assert not any(callable(v) and getattr(v, "__module__", "") == losses.__name__ and k.startswith("_masked")
                    for k, v in vars(losses).items())
+
+
+# ----------------------------------------------------------------------------- GSPO, CISPO
+def _gspo_case():
+    """Sequence 1: completion tokens with ratios 1.5, 0.5, 0.5 and A = +1; sequence 2: one token, ratio 0.7,
+    A = -2. NaN outside the mask."""
+    nan = float("nan")
+    mask = torch.tensor([[0, 1, 1, 1], [0, 1, 0, 0]], dtype=torch.bool)
+    old = torch.full((2, 4), -1.0)
+    ratios = torch.tensor([[1.0, 1.5, 0.5, 0.5], [1.0, 0.7, 1.0, 1.0]])
+    logps = old + ratios.log()
+    logps[~mask] = nan
+    return logps.requires_grad_(True), old, torch.tensor([1.0, -2.0]), mask
+
+
+def test_gspo_hand_computed_and_gradient():
+    logps, old, adv, mask = _gspo_case()
+    loss, m = losses.gspo_policy_loss(logps, old, adv, mask, clip_eps=0.2)
+    # s_1 = (1.5 * 0.5 * 0.5)^(1/3) = 0.375^(1/3) = 0.7211248; A = +1: max(-0.7211, -0.8) = -0.7211 (unclipped)
+    # s_2 = 0.7; A = -2: max(1.4, -2 * 0.8 = 1.6) = 1.6 (clipped, low); mean over the 2 sequences
+    s1 = 0.375 ** (1 / 3)
+    assert s1 == pytest.approx(0.7211248, abs=1e-7)
+    assert loss.item() == pytest.approx((-s1 + 1.6) / 2)  # 0.4394376
+    assert m["clip_frac"] == pytest.approx(0.5) and m["clip_frac_low"] == pytest.approx(0.5)
+    assert m["clip_frac_high"] == 0.0
+    assert m["ratio_mean"] == pytest.approx((s1 + 0.7) / 2) and m["ratio_max"] == pytest.approx(0.7211248, abs=1e-6)
+    k3 = sum(r - 1 - math.log(r) for r in (1.5, 0.5, 0.5, 0.7)) / 4  # token-level, over the 4 tokens
+    assert m["approx_kl"] == pytest.approx(k3)
+    loss.backward()
+    # d/d logp_t of -A s_1 / 2 with s_1 = exp(mean_t log r_t): -A s_1 / (2 * 3) on each of the 3 tokens;
+    # sequence 2 is clipped: no gradient
+    g = -s1 / 6
+    torch.testing.assert_close(logps.grad, torch.tensor([[0.0, g, g, g], [0.0, 0.0, 0.0, 0.0]]))
+
+
+def test_gspo_token_equals_gspo_with_sequence_advantages():
+    logps, old, adv, mask = _gspo_case()
+    seq, m_seq = losses.gspo_policy_loss(logps, old, adv, mask, clip_eps=0.2)
+    (g_seq,) = torch.autograd.grad(seq, logps)
+    tok, m_tok = losses.gspo_policy_loss(logps, old, adv, mask, clip_eps=0.2, token_level=True)
+    (g_tok,) = torch.autograd.grad(tok, logps)
+    assert tok.item() == pytest.approx(seq.item())
+    torch.testing.assert_close(g_tok, g_seq)  # GSPO §4.3: the same gradient when A is per sequence
+    # per-token advantages are GSPO-token only: the sequence form refuses them
+    with pytest.raises(ValueError, match="one advantage per sequence"):
+        losses.gspo_policy_loss(logps, old, adv[:, None].expand(2, 4), mask, clip_eps=0.2)
+    with pytest.raises(ValueError, match="mean over sequences"):
+        losses.gspo_policy_loss(logps, old, adv, mask, clip_eps=0.2, aggregation="token_mean")
+
+
+def test_gspo_on_policy_and_sequence_weights():
+    logps, old, adv, mask = _gspo_case()
+    same, m = losses.gspo_policy_loss(old.clone(), old, adv, mask, clip_eps=3e-4, clip_eps_high=4e-4)
+    assert same.item() == pytest.approx(-adv.mean().item()) and m["clip_frac"] == 0.0  # ratio 1: -mean(A)
+    w = torch.tensor([[9.0, 2.0, 2.0, 2.0], [9.0, 0.5, 9.0, 9.0]])  # constant on each sequence's tokens
+    weighted, _ = losses.gspo_policy_loss(logps, old, adv, mask, clip_eps=0.2, weights=w)
+    assert weighted.item() == pytest.approx((-2.0 * 0.375 ** (1 / 3) + 0.5 * 1.6) / 2)
+    with pytest.raises(ValueError, match="vary"):
+        losses.gspo_policy_loss(logps, old, adv, mask, clip_eps=0.2, weights=torch.rand(2, 4) + 1)
+
+
+def test_cispo_hand_computed_and_gradient_keeps_clipped_tokens():
+    logps, old, adv, mask = _ppo_case()  # ratios 1.5, 0.5, 0.5 (A = 1, 1, -2) and 1.1 (A = 3)
+    loss, m = losses.cispo_policy_loss(logps, old, adv, mask, clip_eps=0.2)
+    # w = clip(r, 0.8, 1.2) = 1.2, 0.8, 0.8, 1.1; values -A w = -1.2, -0.8, 1.6, -3.3; token mean
+    assert loss.item() == pytest.approx((-1.2 - 0.8 + 1.6 - 3.3) / 4)  # -0.925
+    assert m["clip_frac"] == pytest.approx(0.75)  # 3 of 4 weights capped
+    assert m["clip_frac_low"] == pytest.approx(0.5) and m["clip_frac_high"] == pytest.approx(0.25)
+    loss.backward()
+    # gradient -A w / 4 on every token, the clipped ones included (PPO gives 0 on tokens 1 and 3)
+    expected = torch.tensor([[0.0, -1.2 / 4, -0.8 / 4, 2 * 0.8 / 4], [0.0, -3.0 * 1.1 / 4, 0.0, 0.0]])
+    torch.testing.assert_close(logps.grad, expected)
+    # no lower bound (MiniMax-M1): clip_eps = 1 -> w = 1.2, 0.5, 0.5, 1.1
+    free, _ = losses.cispo_policy_loss(logps, old, adv, mask, clip_eps=1.0, clip_eps_high=0.2)
+    assert free.item() == pytest.approx((-1.2 - 0.5 + 1.0 - 3.3) / 4)  # -1.0
+
+
+def test_cispo_on_policy_gradient_equals_ppo():
+    g = torch.Generator().manual_seed(4)
+    logps = (-torch.rand(3, 5, generator=g)).requires_grad_(True)
+    adv = torch.randn(3, 5, generator=g)
+    mask = torch.rand(3, 5, generator=g) > 0.3
+    for agg in ("token_mean", "seq_mean_token_mean"):
+        a, _ = losses.cispo_policy_loss(logps, logps.detach().clone(), adv, mask, clip_eps=0.2, aggregation=agg)
+        b, _ = losses.ppo_policy_loss(logps, logps.detach().clone(), adv, mask, clip_eps=0.2, aggregation=agg)
+        assert a.item() == pytest.approx(b.item(), abs=1e-6)
+        torch.testing.assert_close(torch.autograd.grad(a, logps)[0], torch.autograd.grad(b, logps)[0])
+
+
+def test_policy_loss_dispatches_by_name():
+    logps, old, adv, mask = _gspo_case()
+    for kind, fn, kw in (("clip", losses.ppo_policy_loss, {}), ("cispo", losses.cispo_policy_loss, {}),
+                         ("gspo_token", losses.gspo_policy_loss, {"token_level": True})):
+        a, _ = losses.policy_loss(kind, logps, old, adv, mask, clip_eps=0.2, aggregation="seq_mean_token_mean")
+        b, _ = fn(logps, old, adv, mask, clip_eps=0.2, aggregation="seq_mean_token_mean", **kw)
+        assert a.item() == pytest.approx(b.item())
+    a, _ = losses.policy_loss("gspo", logps, old, adv, mask, clip_eps=0.2, aggregation="seq_mean_token_mean")
+    assert a.item() == pytest.approx((-(0.375 ** (1 / 3)) + 1.6) / 2)
+    with pytest.raises(ValueError, match="unknown kind"):
+        losses.policy_loss("sapo", logps, old, adv, mask, clip_eps=0.2)
+
+
+def test_ppo_policy_loss_weights_scale_each_token():
+    logps, old, adv, mask = _ppo_case()
+    w = torch.tensor([[float("nan"), 2.0, 0.5, 1.0], [float("nan"), 3.0, float("nan"), float("nan")]])
+    loss, _ = losses.ppo_policy_loss(logps, old, adv, mask, clip_eps=0.2, weights=w)
+    # per-token -1.2, -0.5, 1.6, -3.3 (test above) times 2, 0.5, 1, 3
+    assert loss.item() == pytest.approx((-2.4 - 0.25 + 1.6 - 9.9) / 4)
+    loss.backward()
+    expected = torch.tensor([[0.0, 0.0, 0.5 * -0.5 / 4, 0.0], [0.0, 3 * -3.3 / 4, 0.0, 0.0]])
+    torch.testing.assert_close(logps.grad, expected)  # finite: the NaN weights sit outside the mask
+
+
+# ----------------------------------------------------------------------------- rollout correction
+def _mismatch_case():
+    """Token ratios pi_train / pi_sampler: 3, 0.25, 1.5 on sequence 1 and 0.9 on sequence 2 (one token)."""
+    mask = torch.tensor([[1, 1, 1], [1, 0, 0]], dtype=torch.bool)
+    sampler = torch.full((2, 3), -2.0)
+    train = sampler + torch.tensor([[3.0, 0.25, 1.5], [0.9, 1.0, 1.0]]).log()
+    train[~mask] = float("nan")
+    return train, sampler, mask
+
+
+def test_sampler_mismatch_hand_computed():
+    train, sampler, mask = _mismatch_case()
+    m = losses.sampler_mismatch(train, sampler, mask)
+    # k3 = w - 1 - log w: 0.9013877 + 0.6362944 + 0.0945349 + 0.0053605 = 1.6375775, over 4 tokens
+    assert m["mismatch/kl"] == pytest.approx(sum(w - 1 - math.log(w) for w in (3, 0.25, 1.5, 0.9)) / 4)
+    assert m["mismatch/kl"] == pytest.approx(0.4093944, abs=1e-6)
+    assert m["mismatch/max_ratio"] == pytest.approx(3.0) and m["mismatch/min_ratio"] == pytest.approx(0.25)
+    same = losses.sampler_mismatch(sampler, sampler.clone(), mask)
+    assert same["mismatch/kl"] == 0.0 and same["mismatch/max_ratio"] == 1.0
+
+
+def test_rollout_correction_hand_computed():
+    train, sampler, mask = _mismatch_case()
+    w, keep, m = losses.rollout_correction(train, sampler, mask, kind="tis", cap=2.0)
+    torch.testing.assert_close(w[mask], torch.tensor([2.0, 0.25, 1.5, 0.9]))  # min(w, 2)
+    assert torch.equal(keep, mask)
+    assert m["correction/truncated"] == pytest.approx(0.25)
+    assert m["correction/weight_mean"] == pytest.approx(4.65 / 4)
+    w, keep, m = losses.rollout_correction(train, sampler, mask, kind="mask", cap=2.0)
+    # kept: w in [0.5, 2]: 1.5 and 0.9; 3 and 0.25 are dropped from the loss
+    assert keep.tolist() == [[False, False, True], [True, False, False]]
+    torch.testing.assert_close(w[keep], torch.tensor([1.5, 0.9]))
+    assert m["correction/masked"] == pytest.approx(0.5) and m["correction/weight_mean"] == pytest.approx(1.2)
+    # sequence level: the geometric mean of each sequence's ratios, (3 * 0.25 * 1.5)^(1/3) = 1.125^(1/3), and 0.9
+    g = 1.125 ** (1 / 3)
+    w, keep, m = losses.rollout_correction(train, sampler, mask, kind="tis", level="sequence", cap=2.0)
+    torch.testing.assert_close(w[mask], torch.tensor([g, g, g, 0.9]))
+    assert m["correction/truncated"] == 0.0 and m["correction/weight_mean"] == pytest.approx((3 * g + 0.9) / 4)
+    w, keep, m = losses.rollout_correction(train, sampler, mask, kind="mask", level="sequence", cap=1.05)
+    assert keep.tolist() == [[True, True, True], [False, False, False]]  # 1.040 inside [1/1.05, 1.05]; 0.9 not
+    none_w, none_keep, none_m = losses.rollout_correction(train, sampler, mask, kind="none")
+    assert none_w is None and torch.equal(none_keep, mask) and none_m == {}
+    with pytest.raises(ValueError, match="cap"):
+        losses.rollout_correction(train, sampler, mask, kind="tis", cap=1.0)
+
+
+def test_rollout_correction_bounds_a_perturbed_sampler():
+    """An artificially perturbed sampler (log-probs off by N(0, 1) per token): TIS caps every weight at C,
+    masking keeps exactly the tokens with w in [1/C, C], and both bound the gradient of the weighted loss."""
+    g = torch.Generator().manual_seed(5)
+    B, T, C = 16, 12, 2.0
+    train = -3 * torch.rand(B, T, generator=g)
+    sampler = train + torch.randn(B, T, generator=g)
+    mask = torch.rand(B, T, generator=g) > 0.2
+    w_raw = (train - sampler).exp()
+    assert w_raw[mask].max() > 3 * C  # the perturbation produces weights far above the cap
+    w, keep, m = losses.rollout_correction(train, sampler, mask, kind="tis", cap=C)
+    assert w[mask].max() <= C and torch.equal(keep, mask) and m["correction/truncated"] > 0.1
+    w_m, keep_m, m_m = losses.rollout_correction(train, sampler, mask, kind="mask", cap=C)
+    inside = mask & (w_raw >= 1 / C) & (w_raw <= C)
+    assert torch.equal(keep_m, inside) and w_m[keep_m].max() <= C and w_m[keep_m].min() >= 1 / C
+    assert m_m["correction/masked"] == pytest.approx(1 - inside.sum().item() / mask.sum().item())
+    # the weighted on-policy loss's per-token gradient is bounded by C |A| / n (n = loss tokens)
+    adv = torch.randn(B, generator=g)
+    logps = train.clone().requires_grad_(True)
+    for weights, lm in ((w, keep), (w_m, keep_m)):
+        loss, _ = losses.ppo_policy_loss(logps, train, adv, lm, clip_eps=0.2, weights=weights)
+        (grad,) = torch.autograd.grad(loss, logps)
+        bound = C * adv.abs()[:, None] / lm.sum()
+        assert bool((grad.abs() <= bound + 1e-7).all())
+    # no perturbation: weights 1, nothing dropped, no mismatch
+    w0, keep0, m0 = losses.rollout_correction(train, train.clone(), mask, kind="mask", cap=C)
+    assert torch.equal(keep0, mask) and m0["correction/masked"] == 0.0 and float(w0[mask].max()) == 1.0
+    assert losses.sampler_mismatch(train, train.clone(), mask)["mismatch/kl"] == 0.0
+
+
+def test_untruncated_importance_weights_correct_the_expectation_exactly():
+    # E_sampler[w f] = E_train[f] on an enumerable distribution: the weights are the right ones
+    p = torch.tensor([0.5, 0.3, 0.15, 0.05])  # trainer
+    q = torch.tensor([0.25, 0.25, 0.25, 0.25])  # sampler
+    f = torch.tensor([1.0, -2.0, 4.0, 3.0])
+    w, _, _ = losses.rollout_correction(p.log()[None], q.log()[None], torch.ones(1, 4, dtype=torch.bool),
+                                        kind="tis", cap=1e9)
+    assert float((q * w[0] * f).sum()) == pytest.approx(float((p * f).sum()))
+    capped, _, _ = losses.rollout_correction(p.log()[None], q.log()[None], torch.ones(1, 4, dtype=torch.bool),
+                                             kind="tis", cap=1.5)
+    assert float(capped.max()) == 1.5  # truncation trades this exactness for bounded variance

@@ -237,17 +237,88 @@ def test_gradient_accumulation_and_old_logprobs_match(sft_model, tmp_path):
 
 
 def test_mismatch_kl_is_the_gap_between_sampler_and_trainer(sft_model, tmp_path):
-    """mismatch/kl: KL(sampler || trainer) on the first minibatch; 0 for the fp32 engine, small but positive for
-    bf16 rollout weights, absent when pi_old is recomputed by the trainer."""
+    """mismatch/kl: KL(sampler || trainer), on the first minibatch (pi_old the sampler's) or on every row (pi_old
+    recomputed): 0 for the fp32 engine, which samples with the trainer's own forward, small but positive for bf16
+    rollout weights, either way."""
     got = {}
-    for extra in ("rollout.dtype=float32", "rollout.dtype=bfloat16", "old_logprobs=recompute"):
-        out = tmp_path / extra.replace("=", "-")
+    for extra in ("rollout.dtype=float32", "rollout.dtype=bfloat16", "old_logprobs=recompute",
+                  "old_logprobs=recompute rollout.dtype=bfloat16"):
+        out = tmp_path / extra.replace("=", "-").replace(" ", "_")
         assert main(_args(sft_model, out, "max_steps=2", "zero_variance=keep", "final_eval_rows=0", "eval_rows=0",
-                          "minibatches=2", _verifier("digits"), extra)) == 0
+                          "minibatches=2", _verifier("digits"), *extra.split())) == 0
         got[extra] = _steps(out)
-    assert all(s["mismatch/kl"] == pytest.approx(0.0, abs=1e-6) for s in got["rollout.dtype=float32"])
-    assert all(0 < s["mismatch/kl"] < 0.05 for s in got["rollout.dtype=bfloat16"])
-    assert all("mismatch/kl" not in s for s in got["old_logprobs=recompute"])
+    for fp32 in ("rollout.dtype=float32", "old_logprobs=recompute"):
+        assert all(s["mismatch/kl"] == pytest.approx(0.0, abs=1e-6) for s in got[fp32])
+        assert all(s["mismatch/max_ratio"] == pytest.approx(1.0, abs=1e-4) for s in got[fp32])
+    for bf16 in ("rollout.dtype=bfloat16", "old_logprobs=recompute rollout.dtype=bfloat16"):
+        assert all(0 < s["mismatch/kl"] < 0.05 for s in got[bf16])
+        assert all(s["mismatch/min_ratio"] < 1 < s["mismatch/max_ratio"] for s in got[bf16])
+
+
+def test_the_policy_losses_agree_on_policy_and_differ_off_policy(sft_model, tmp_path):
+    """clip, gspo, gspo_token and cispo: one on-policy update (ratio 1) with the per-sequence token mean has the same
+    loss and gradient for all four; with several passes the later updates are off-policy and each loss reports its
+    own clipping."""
+    first, later = {}, {}
+    for kind in ("clip", "gspo", "gspo_token", "cispo"):
+        out = tmp_path / kind
+        assert main(_args(sft_model, out, "max_steps=1", "zero_variance=keep", "aggregation=seq_mean_token_mean",
+                          f"policy_loss={kind}", "final_eval_rows=0", "eval_rows=0", _verifier("digits"))) == 0
+        first[kind] = _steps(out)[0]
+        out = tmp_path / f"{kind}-mu"
+        assert main(_args(sft_model, out, "max_steps=1", "zero_variance=keep", "aggregation=seq_mean_token_mean",
+                          f"policy_loss={kind}", "mu=3", "minibatches=2", "lr=3e-3", "clip_eps=0.05",
+                          "final_eval_rows=0", "eval_rows=0", _verifier("digits"))) == 0
+        later[kind] = _steps(out)[0]
+    for kind in ("gspo", "gspo_token", "cispo"):
+        assert first[kind]["loss"] == pytest.approx(first["clip"]["loss"], rel=1e-4, abs=1e-6), kind
+        assert first[kind]["grad_norm"] == pytest.approx(first["clip"]["grad_norm"], rel=1e-3), kind
+        assert first[kind]["clip_frac"] == 0.0 and first[kind]["ratio_mean"] == pytest.approx(1.0, abs=1e-4)
+    assert all(later[k]["updates"] == 6 for k in later)
+    assert later["clip"]["clip_frac"] > 0 and later["cispo"]["clip_frac"] > 0
+    # GSPO's ratio is a geometric mean over a sequence: it moves less than the token ratios
+    assert later["gspo"]["ratio_max"] <= later["clip"]["ratio_max"]
+
+
+def test_rollout_correction_with_the_builtin_engine_and_a_perturbed_sampler(sft_model, tmp_path, monkeypatch,
+                                                                             perturbed_sampler):
+    """The built-in fp32 engine samples with the trainer's forward: mismatch/kl < 1e-6 and no weight is touched.
+    A sampler whose log-probs are off by N(0, 0.7) per token: TIS caps every weight at C, masking drops the tokens
+    outside [1/C, C], and both train."""
+    def run(name: str, *extra: str) -> dict:
+        out = tmp_path / name
+        assert main(_args(sft_model, out, "max_steps=1", "zero_variance=keep", "final_eval_rows=0", "eval_rows=0",
+                          _verifier("digits"), *extra)) == 0
+        return _steps(out)[0]
+
+    s = run("tis-fp32", "rollout_correction=tis")
+    assert s["mismatch/kl"] < 1e-6 and s["correction/truncated"] == 0.0
+    assert s["correction/max_weight"] == pytest.approx(1.0, abs=1e-4)
+    s = run("mask-fp32-seq", "rollout_correction=mask", "rollout_correction_level=sequence")
+    assert s["mismatch/kl"] < 1e-6 and s["correction/masked"] == 0.0
+
+    import posttrain.rollout as rollout
+    monkeypatch.setattr(rollout, "generate", perturbed_sampler(rollout.generate, 0.7))
+    tis = run("tis-perturbed", "rollout_correction=tis", "rollout_correction_cap=2")
+    assert tis["mismatch/kl"] > 0.1 and tis["mismatch/max_ratio"] > 2.0
+    assert tis["correction/truncated"] > 0.05 and tis["correction/max_weight"] <= 2.0
+    mask = run("mask-perturbed", "rollout_correction=mask", "rollout_correction_cap=2")
+    assert 0.05 < mask["correction/masked"] < 0.9 and 0.5 <= mask["correction/max_weight"] <= 2.0
+    assert mask["rows/trained"] > 0 and mask["grad_norm"] > 0
+    none = run("none-perturbed")  # no correction, pi_old the (perturbed) sampler's: the ratios are off from the start
+    assert none["ratio_max"] > 2.0
+
+
+def test_incompatible_policy_loss_settings_are_config_errors(sft_model, tmp_path, capsys):
+    out = tmp_path / "bad"
+    for extra, words in ((("policy_loss=gspo", "aggregation=token_mean"), "aggregation=seq_mean_token_mean"),
+                         (("policy_loss=gspo", "aggregation=seq_mean_token_mean", "rollout_correction=tis"),
+                          "rollout_correction_level=sequence"),
+                         (("rollout_correction=mask", "rollout_correction_cap=1"), "rollout_correction_cap must be > 1"),
+                         (("policy_loss=sapo",), "policy_loss")):
+        assert main(_args(sft_model, out, *extra)) == 2, extra
+        assert words in capsys.readouterr().err, extra
+    assert not (out / "tiny-countdown" / "grpo").exists()
 
 
 def test_several_passes_clip_and_clip_higher(sft_model, tmp_path):

@@ -68,6 +68,8 @@ def _metrics(out: Path) -> list[dict]:
     ("rollout_batch_size=128", "ppo.rollout_batch_size=128 is more than the 64 training prompts"),
     ("kl_estimator=k2", "'ppo.kl_estimator': 'k2' is not one of 'k1', 'k3'"),
     ("task.train_file=SHORT", "ppo.reward=gold needs the task's meta in every training row"),
+    ("policy_loss=gspo", "ppo.policy_loss=gspo needs one advantage per sequence"),
+    ("rollout_correction_cap=0.5", "ppo.rollout_correction_cap must be > 1"),
 ])
 def test_config_errors_are_one_line_and_touch_nothing(world, tmp_path, capsys, bad, message):
     extra = [bad, "kl_control=adaptive"] if bad.startswith("kl_target") else [bad.replace("SHORT", str(world["short"]))]
@@ -242,6 +244,27 @@ def test_disable_dropout_flag_makes_the_first_ratio_exactly_one(world, tmp_path,
                           "minibatch_size=8")) == 0
         kl[flag] = _metrics(out)[0]["policy/approx_kl"]
     assert kl["true"] == 0.0 and kl["false"] > 1e-4, kl
+
+
+def test_policy_loss_family_and_rollout_correction(world, tmp_path, vowels, monkeypatch, perturbed_sampler):
+    """cispo and gspo_token give clip's loss and gradient on the first (on-policy) update; with a sampler whose
+    log-probs are off by N(0, 0.7) the corrections bound or drop the policy loss's tokens."""
+    def first(name: str, *extra: str) -> dict:
+        out = tmp_path / name
+        assert main(_args(world, out, "max_steps=1", "ppo_epochs=1", "minibatch_size=8", *extra)) == 0
+        return _metrics(out)[0]
+
+    clip = first("clip")
+    for kind in ("cispo", "gspo_token"):
+        m = first(kind, f"policy_loss={kind}")
+        assert m["policy/loss"] == pytest.approx(clip["policy/loss"], rel=1e-4, abs=1e-6), kind
+        assert m["policy/grad_norm"] == pytest.approx(clip["policy/grad_norm"], rel=1e-3), kind
+    assert clip["mismatch/kl"] < 1e-6 and clip["mismatch/max_ratio"] == pytest.approx(1.0, abs=1e-4)
+    monkeypatch.setattr(ppo, "generate", perturbed_sampler(ppo.generate, 0.7))
+    tis = first("tis", "rollout_correction=tis")
+    assert tis["mismatch/kl"] > 0.1 and tis["correction/max_weight"] <= 2.0 and tis["correction/truncated"] > 0.05
+    mask = first("mask", "rollout_correction=mask")
+    assert 0.05 < mask["correction/masked"] < 0.9 and mask["policy/grad_norm"] > 0
 
 
 def test_log_probs_at_the_sampling_temperature(world):
