@@ -9,6 +9,8 @@ columns in the `RolloutBatch` layout (`posttrain/rollout/records.py`), `completi
 - `rewards_with_kl`: the per-token RLHF reward (score at the last token, -kl_coef * KL at every token).
 - `group_advantages`: critic-free per-sequence advantages (GRPO, RLOO, REINFORCE++).
 - `zero_variance_groups`: groups whose completions all got the same reward (no signal).
+- `track_pass_rates`, `curriculum_weights`: a pass-rate curriculum for verifier-reward RL (which problems
+  to sample next: those whose groups are likely to carry signal).
 - `FixedKLController`, `AdaptiveKLController`: the KL coefficient of PPO-for-RLHF.
 
 Whitening GAE advantages over the batch (TRL's PPO does it; cleanrl per minibatch) is
@@ -24,6 +26,9 @@ Choices and deviations, each named again where it is used:
   do; `eps` is added to the std, not to the variance.
 - REINFORCE++ is implemented at the sequence level (scalar outcome rewards, KL in the loss);
   see `group_advantages` for how to get OpenRLHF's token-weighted variant.
+- `curriculum_weights` weighs a problem by the probability that a group of K samples from it is
+  informative, 1 - p^K - (1 - p)^K for its tracked pass rate p (binary rewards), rather than by a
+  hand-set band of pass rates: it is the chance that dynamic sampling would keep the group.
 """
 from __future__ import annotations
 
@@ -204,6 +209,47 @@ def zero_variance_groups(rewards: torch.Tensor, group_size: int) -> torch.Tensor
 
 
 # ----------------------------------------------------------------------------- KL coefficient
+# ----------------------------------------------------------------------------- curriculum
+@torch.no_grad()
+def track_pass_rates(rates: torch.Tensor, seen: torch.Tensor, idx: torch.Tensor, group_pass: torch.Tensor,
+                     decay: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each problem's recent pass rate: an exponential moving average over the groups sampled from it.
+
+    `rates` (N,) and `seen` (N,) bool: the table over the whole problem pool; `idx` (G,): the problems of
+    this step's groups; `group_pass` (G,): the fraction of each group's K completions that passed. A
+    problem seen for the first time takes its group's pass rate; after that r <- decay r + (1 - decay)
+    pass (decay in [0, 1): 0 keeps only the latest group). A problem drawn twice in one step is updated
+    in order. Returns new tensors (the inputs are not modified).
+    """
+    if not 0.0 <= decay < 1.0:
+        raise ValueError(f"track_pass_rates: decay must be in [0, 1), got {decay}")
+    rates, seen = rates.clone(), seen.clone()
+    for i, p in zip(idx.tolist(), group_pass.tolist()):
+        rates[i] = decay * rates[i] + (1.0 - decay) * p if seen[i] else p
+        seen[i] = True
+    return rates, seen
+
+
+@torch.no_grad()
+def curriculum_weights(rates: torch.Tensor, seen: torch.Tensor, group_size: int, *, floor: float) -> torch.Tensor:
+    """Sampling weights (N,) of the problems for the next groups, from their tracked pass rates.
+
+    A group of K binary rewards carries signal unless all K agree, which happens with probability
+    p^K + (1 - p)^K; the weight is the complement, 1 - p^K - (1 - p)^K (so problems that are always solved
+    or always failed are down-weighted), never below `floor` (0 < floor <= 1: every problem stays
+    reachable and a pass-rate estimate from few groups can be revised). Unseen problems weigh 1, the
+    most any problem can (as much as one of pass rate 1/2 at large K). Curriculum sampling in the spirit of DAPO's dynamic sampling
+    and of online difficulty filtering (Bae et al. 2025, "Online Difficulty Filtering for Reasoning
+    Oriented Reinforcement Learning"), which keep prompts of intermediate pass rate.
+    """
+    if not 0.0 < floor <= 1.0:
+        raise ValueError(f"curriculum_weights: floor must be in (0, 1], got {floor}")
+    if group_size < 1:
+        raise ValueError(f"curriculum_weights: group_size must be >= 1, got {group_size}")
+    informative = 1.0 - rates.pow(group_size) - (1.0 - rates).pow(group_size)  # (N,)
+    return torch.where(seen, informative.clamp(min=floor), torch.ones_like(rates))
+
+
 class FixedKLController:
     """A constant KL coefficient (Ziegler et al. 2019, the non-adaptive setting)."""
 

@@ -44,6 +44,12 @@ Implementation details it follows, each a config field:
     (mismatch/kl = KL(sampler || trainer), k3; mismatch/max_ratio, mismatch/min_ratio): ~0 with the built-in
     fp32 engine, which samples with the trainer's own forward, by construction (tested below 1e-6).
 
+14. Pass-rate curriculum (prompt_sampling=pass_rate, `advantages.track_pass_rates` / `curriculum_weights`): each
+    problem's recent pass rate is tracked (an EMA over its groups) and the next prompts are drawn without
+    replacement with weight 1 - p^K - (1 - p)^K, the chance that a group of K is informative, floored so none
+    starves; unseen problems weigh 1. An option beside dynamic sampling (both can run); the pass-rate histogram
+    of the pool is logged (curriculum/*) and the table is part of the checkpoint.
+
 Named methods as settings (other fields at their defaults; the loss family and the aggregations are orthogonal,
 except where a config error says otherwise):
 
@@ -105,7 +111,7 @@ from posttrain import loop, sharding
 from posttrain.problems import (PREFLIGHT_ROWS, Group, HeldOut, Problem, Reward, build_reward,  # noqa: F401
                                 build_verifier, check_problems, gather_groups, preflight, row_reference, score_groups,
                                 split_rows, tokenize_problems)
-from posttrain.advantages import group_advantages, zero_variance_groups
+from posttrain.advantages import curriculum_weights, group_advantages, track_pass_rates, zero_variance_groups
 from posttrain.config import ConfigError, Resolved
 from posttrain.logprobs import masked_mean, sequence_logprobs
 from posttrain.losses import aggregate_token_loss, kl_penalty, policy_loss, rollout_correction, sampler_mismatch
@@ -184,6 +190,13 @@ class GRPOConfig:
     """Groups with identical rewards: keep them, skip them, or resample more prompts to refill (DAPO)."""
     max_resample_rounds: int = 2
     """Extra sampling rounds per step at most when zero_variance=resample."""
+    prompt_sampling: Literal["uniform", "pass_rate"] = "uniform"
+    """Which problems a step samples: uniform (seeded epochs), or pass_rate (a curriculum: weighted by the chance
+    that a group is informative given the problem's tracked pass rate; needs a verifier)."""
+    curriculum_floor: float = 0.05
+    """pass_rate: the smallest sampling weight (always-solved and never-solved problems keep this much)."""
+    curriculum_decay: float = 0.5
+    """pass_rate: EMA decay of each problem's pass rate (0: only its latest group)."""
     lr: float = 1e-4
     """Peak learning rate (AdamW)."""
     weight_decay: float = 0.0
@@ -251,6 +264,11 @@ def check_config(cfg: GRPOConfig) -> None:
     if cfg.policy_loss == "gspo" and cfg.rollout_correction != "none" and cfg.rollout_correction_level != "sequence":
         raise bad("policy_loss=gspo has one ratio per sequence, so its rollout correction must be per sequence too: "
                   "set rollout_correction_level=sequence (or use policy_loss=gspo_token)")
+    if cfg.prompt_sampling == "pass_rate" and cfg.verifier == "none":
+        raise bad("prompt_sampling=pass_rate tracks each problem's pass rate, which needs a verifier (verifier=none)")
+    if not 0 < cfg.curriculum_floor <= 1 or not 0 <= cfg.curriculum_decay < 1:
+        raise bad(f"curriculum_floor must be in (0, 1] and curriculum_decay in [0, 1), got {cfg.curriculum_floor}, "
+                  f"{cfg.curriculum_decay}")
     if not cfg.rollout_correction_cap > 1:
         raise bad(f"rollout_correction_cap must be > 1, got {cfg.rollout_correction_cap}")
     if cfg.verifier == "none" and cfg.reward_model == "none":
@@ -291,6 +309,43 @@ def load_problems(res: Resolved, cfg: GRPOConfig):
 
 
 # ----------------------------------------------------------------------------- rollout and score
+@dataclass
+class Curriculum:
+    """Detail 14: the pass-rate table over the training problems and the weighted draw of a round's prompts."""
+
+    rates: torch.Tensor  # (N,) tracked pass rate per problem
+    seen: torch.Tensor  # (N,) bool: sampled at least once
+
+    @classmethod
+    def fresh(cls, n: int) -> Curriculum:
+        return cls(torch.zeros(n), torch.zeros(n, dtype=torch.bool))
+
+    def pick(self, cfg: GRPOConfig, n: int, seed: int, step: int, exclude: list[int]) -> list[int]:
+        """`n` problem indices, drawn without replacement by weight (seeded by (seed, step): resumable); the
+        problems already drawn this step (`exclude`) are left out."""
+        w = curriculum_weights(self.rates, self.seen, cfg.group_size, floor=cfg.curriculum_floor)
+        w[torch.as_tensor(exclude, dtype=torch.long)] = 0.0
+        gen = torch.Generator().manual_seed(seed * 1_000_003 + step)
+        return torch.multinomial(w, min(n, int((w > 0).sum())), replacement=False, generator=gen).tolist()
+
+    def update(self, cfg: GRPOConfig, index: list[int], passed: list[bool]) -> None:
+        """Fold a step's groups (problem indices, K pass flags each, contiguous) into the table."""
+        K = cfg.group_size
+        rate = torch.tensor([sum(passed[g * K:(g + 1) * K]) / K for g in range(len(index))])
+        self.rates, self.seen = track_pass_rates(self.rates, self.seen, torch.tensor(index, dtype=torch.long), rate,
+                                                 cfg.curriculum_decay)
+
+    def metrics(self) -> dict[str, float]:
+        """The pool's pass-rate histogram: fractions of all problems unseen, and of the seen ones never solved,
+        below 1/2, at least 1/2 (not always) and always solved."""
+        n, r = len(self.rates), self.rates[self.seen]
+        k = max(1, len(r))
+        return {"curriculum/unseen": 1.0 - len(r) / n, "curriculum/pass_0": float((r == 0).sum()) / k,
+                "curriculum/pass_lt_half": float(((r > 0) & (r < 0.5)).sum()) / k,
+                "curriculum/pass_ge_half": float(((r >= 0.5) & (r < 1)).sum()) / k,
+                "curriculum/pass_1": float((r == 1).sum()) / k}
+
+
 @dataclass
 class StepBatch:
     """The scored rollouts of one step (all rounds), and which groups go into the loss."""
@@ -473,6 +528,7 @@ def _row_metrics(sb: StepBatch, K: int, verifier_parts: set[str]) -> dict[str, f
         if name in verifier_parts:
             m[f"pass/{name}"] = sum(x >= 1.0 for x in v) / n
     reasons = sb.reasons[:n]
+    m["tokens/generated"] = float(sum(len(x.completion_ids) for x in sb.rollouts))  # every round's
     m["verifier/timeouts"] = float(sum("timeout" in x for x in reasons))
     m["verifier/crashes"] = float(sum("crashed" in x for x in reasons))
     m["verifier/errors"] = float(sum("verifier error" in x for x in reasons))
@@ -503,6 +559,15 @@ def degenerate_message(step: int, sb: StepBatch, K: int, passed: list[bool] | No
             f"advantages are 0, so the policy-gradient loss is ~0 and this step teaches nothing - {why}{reason}")
 
 
+def passed_flags(sb: StepBatch, reward: Reward) -> list[bool] | None:
+    """Per completion of `sb`, whether the correctness verifier passed it: the first term of a composition, else
+    the whole verdict; None without a verifier."""
+    if reward.verifier is None:
+        return None
+    src = sb.parts.get(reward.prefix + reward.correctness) if reward.correctness else sb.parts.get("verifier")
+    return [x >= 1.0 for x in (src if src is not None else sb.rewards.tolist())]
+
+
 def step_notes(done: int, m: dict[str, float], sb: StepBatch, K: int, reward: Reward) -> list[str]:
     """What a user asks when a run misbehaves, in words: verifier errors, timeouts and crashes, no signal."""
     notes = []
@@ -514,11 +579,7 @@ def step_notes(done: int, m: dict[str, float], sb: StepBatch, K: int, reward: Re
     if m["verifier/timeouts"] or m["verifier/crashes"]:
         notes.append(f"[grpo] step {done}: {int(m['verifier/timeouts'])} verifier timeouts and "
                      f"{int(m['verifier/crashes'])} crashes, scored 0 (the step went on)")
-    passed = None
-    if reward.verifier is not None:  # the correctness part (first term of a composition), else the whole verdict
-        src = sb.parts.get(reward.prefix + reward.correctness) if reward.correctness else sb.parts.get("verifier")
-        passed = [x >= 1.0 for x in (src if src is not None else sb.rewards.tolist())]
-    degenerate = degenerate_message(done, sb, K, passed)
+    degenerate = degenerate_message(done, sb, K, passed_flags(sb, reward))
     return notes + ([degenerate] if degenerate else [])
 
 
@@ -591,8 +652,11 @@ def train(res: Resolved, ensure) -> Path:
         policy = accelerator.unwrap_model(model)
         ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
         metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, main, res.run.quiet, prefix="[grpo] ")
-        start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say,
-                                tag="grpo")["step"]
+        state = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="grpo")
+        start, saved = state["step"], state["extra"].get("curriculum")
+        curriculum = None if cfg.prompt_sampling == "uniform" else Curriculum.fresh(len(problems)) if saved is None \
+            else Curriculum(torch.tensor(saved["rates"]), torch.tensor(saved["seen"], dtype=torch.bool))
+        index_of = {p.key: i for i, p in enumerate(problems)}  # a group's problem -> its position in `problems`
         baseline = held.sft_baseline(policy, tokenizer, run_dir / "sft_eval.json", start, metrics, say) if main else {}
         say(describe_run(cfg, reward, len(problems), rm_dir, recompute_old, world, device, budget))
         rounds = 1 + (cfg.max_resample_rounds if cfg.zero_variance == "resample" else 0)
@@ -607,9 +671,11 @@ def train(res: Resolved, ensure) -> Path:
             with loop.naming_checkpoint(ckpt):
                 # ---- rollout, in rounds: process r takes positions r, r + W, ... of the round's global prompt
                 # batch; DAPO dynamic sampling (zero_variance=resample) adds rounds until P groups are informative
-                groups, scored, first_round = [], 0, 0
+                groups, scored, first_round, drawn = [], 0, 0, []
                 for rnd in range(rounds):
-                    idx = loop.batch_indices(len(problems), P, cfg.seed + 7919 * rnd, step)  # the global batch
+                    idx = loop.batch_indices(len(problems), P, cfg.seed + 7919 * rnd, step) if curriculum is None \
+                        else curriculum.pick(cfg, P, cfg.seed + 7919 * rnd, step, drawn)  # the global batch
+                    drawn += idx
                     mine = sharding.positions(P, rank, world)  # this process's positions in it
                     ps = [problems[idx[i]] for i in mine]
                     t0 = time.time()
@@ -627,6 +693,9 @@ def train(res: Resolved, ensure) -> Path:
                     if int((~zero_variance_groups(sb.rewards, K)).sum()) >= P:  # informative groups
                         break
                 m = _row_metrics(sb, K, reward.verifier_parts)
+                if curriculum is not None:  # every process holds every group: the same table everywhere
+                    curriculum.update(cfg, [index_of[p.key] for p in sb.problems], passed_flags(sb, reward))
+                    m.update(curriculum.metrics())
                 # ---- advantages of the kept groups; pi_old (when recomputed) and reference log-probs, no grad
                 t0 = time.time()
                 rows = loss_rows(cfg, sb, accelerator, tokenizer.pad_token_id, policy if recompute_old else None,
@@ -658,7 +727,8 @@ def train(res: Resolved, ensure) -> Path:
                     + ", ".join(f"{k.removeprefix('eval/')} {v:.3f}" for k, v in em.items()))
             # ---- checkpoint
             if saving:
-                ckpt.save(done, model, optimizer, scheduler, {"step": done})
+                ckpt.save(done, model, optimizer, scheduler, {"step": done}, None if curriculum is None else
+                          {"curriculum": {"rates": curriculum.rates.tolist(), "seen": curriculum.seen.tolist()}})
 
         final = run_dir / "final"
         if main:

@@ -1,5 +1,6 @@
 """Verifiers for tests/posttrain/trainers/test_grpo.py (and rollout/test_backends.py, test_real_models.py), loaded as `tests/posttrain/grpo_verifiers.py:NAME` (worker processes
-import this file by path). Deterministic: whatever they do depends only on the completion text."""
+import this file by path). Deterministic: whatever they do depends only on the completion text (and, for
+`half_on_odd`, the reference)."""
 import os
 import time
 import zlib
@@ -43,3 +44,10 @@ def raises_sometimes(completion, reference):
 def always_raises(completion, reference):
     """A broken verifier."""
     raise ValueError("broken verifier")
+
+
+def half_on_odd(completion, reference):
+    """Problems whose reference hashes even are always solved; the others pass about half their completions."""
+    if zlib.crc32(repr(reference).encode()) % 2 == 0:
+        return 1.0
+    return float(_h(completion) % 2)

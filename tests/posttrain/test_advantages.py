@@ -218,3 +218,36 @@ def test_fixed_kl_controller():
 def test_module_has_no_second_masked_mean():
     # masked means / whitening live in posttrain.logprobs only
     assert not any(name.startswith(("masked", "whiten")) for name in vars(adv_mod))
+
+
+# ----------------------------------------------------------------------------- curriculum
+def test_track_pass_rates_hand_computed():
+    rates, seen = torch.zeros(4), torch.zeros(4, dtype=torch.bool)
+    r, s = adv_mod.track_pass_rates(rates, seen, torch.tensor([1, 3]), torch.tensor([0.25, 1.0]), decay=0.5)
+    assert r.tolist() == [0.0, 0.25, 0.0, 1.0] and s.tolist() == [False, True, False, True]  # first sight: as seen
+    assert rates.tolist() == [0.0] * 4 and not seen.any()  # inputs untouched
+    # problem 1 again: 0.5 * 0.25 + 0.5 * 0.75 = 0.5; problem 3 twice in one step: 1 -> 0.5 -> 0.25
+    r, s = adv_mod.track_pass_rates(r, s, torch.tensor([1, 3, 3]), torch.tensor([0.75, 0.0, 0.0]), decay=0.5)
+    assert r.tolist() == [0.0, 0.5, 0.0, 0.25]
+    r0, _ = adv_mod.track_pass_rates(r, s, torch.tensor([1]), torch.tensor([1.0]), decay=0.0)
+    assert r0[1].item() == 1.0  # decay 0: only the latest group
+    with pytest.raises(ValueError, match="decay"):
+        adv_mod.track_pass_rates(r, s, torch.tensor([1]), torch.tensor([1.0]), decay=1.0)
+
+
+def test_curriculum_weights_hand_computed():
+    rates = torch.tensor([0.5, 0.0, 1.0, 0.9, 0.3])
+    seen = torch.tensor([True, True, True, True, False])
+    w = adv_mod.curriculum_weights(rates, seen, 2, floor=0.05)
+    # K = 2: 1 - p^2 - (1-p)^2 = 2 p (1 - p): 0.5, 0 -> floor, 0 -> floor, 0.18; unseen: 1
+    torch.testing.assert_close(w, torch.tensor([0.5, 0.05, 0.05, 0.18, 1.0]))
+    w8 = adv_mod.curriculum_weights(rates, seen, 8, floor=0.01)
+    # K = 8 at p = 0.5: 1 - 2 / 256; at p = 0.9: 1 - 0.9^8 - 0.1^8 = 0.5695328
+    assert w8[0].item() == pytest.approx(1 - 2 / 256) and w8[3].item() == pytest.approx(1 - 0.9 ** 8 - 0.1 ** 8)
+    # the weight is the exact probability that a group of K Bernoulli(p) rewards is not all equal
+    g = torch.Generator().manual_seed(0)
+    draws = torch.rand(200_000, 8, generator=g) < 0.9
+    informative = (draws.any(-1) & ~draws.all(-1)).float().mean().item()
+    assert informative == pytest.approx(w8[3].item(), abs=0.005)
+    with pytest.raises(ValueError, match="floor"):
+        adv_mod.curriculum_weights(rates, seen, 2, floor=0.0)

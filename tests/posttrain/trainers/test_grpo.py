@@ -315,7 +315,8 @@ def test_incompatible_policy_loss_settings_are_config_errors(sft_model, tmp_path
                          (("policy_loss=gspo", "aggregation=seq_mean_token_mean", "rollout_correction=tis"),
                           "rollout_correction_level=sequence"),
                          (("rollout_correction=mask", "rollout_correction_cap=1"), "rollout_correction_cap must be > 1"),
-                         (("policy_loss=sapo",), "policy_loss")):
+                         (("policy_loss=sapo",), "policy_loss"),
+                         (("prompt_sampling=pass_rate", "curriculum_floor=0"), "curriculum_floor must be in (0, 1]")):
         assert main(_args(sft_model, out, *extra)) == 2, extra
         assert words in capsys.readouterr().err, extra
     assert not (out / "tiny-countdown" / "grpo").exists()
@@ -388,6 +389,33 @@ def test_resume_continues_exactly(sft_model, tmp_path):
     ea = json.loads((full / "tiny-countdown" / "grpo" / "eval.json").read_text())
     eb = json.loads((cut / "tiny-countdown" / "grpo" / "eval.json").read_text())
     assert ea["sft"] == eb["sft"] and ea["grpo"] == eb["grpo"]  # the SFT numbers survive the resume
+
+
+def test_pass_rate_curriculum_draws_informative_problems_and_resumes_exactly(sft_model, tmp_path):
+    """half_on_odd: problems hashing even are always solved (their groups carry no signal), the others are solved
+    about half the time. Once problems have been seen, the curriculum draws the informative ones, so later steps have
+    far fewer zero-variance groups than uniform sampling; a resumed run draws the same."""
+    common = ("task.n_train=16", "prompts_per_step=4", "zero_variance=keep", "max_steps=12", "eval_rows=0",
+              "final_eval_rows=0", _verifier("half_on_odd"))
+    uniform, cur = tmp_path / "uniform", tmp_path / "curriculum"
+    assert main(_args(sft_model, uniform, *common)) == 0
+    assert main(_args(sft_model, cur, *common, "prompt_sampling=pass_rate", "curriculum_floor=1e-4")) == 0
+    u, c = _steps(uniform), _steps(cur)
+    unseen = [r["curriculum/unseen"] for r in c]
+    assert unseen[0] == pytest.approx(12 / 16) and unseen == sorted(unseen, reverse=True)
+    for r in c:
+        assert sum(r[f"curriculum/{k}"] for k in ("pass_0", "pass_lt_half", "pass_ge_half", "pass_1")) == \
+            pytest.approx(1.0)
+        assert r["tokens/generated"] > 0
+    late = lambda rows: sum(r["zero_var_frac"] for r in rows[4:]) / 8  # noqa: E731 (gap 0.34-0.50 at 5 model seeds)
+    assert late(c) < late(u) - 0.15, (late(c), late(u))
+    cut = tmp_path / "cut"
+    assert main(_args(sft_model, cut, *common[:-2], "max_steps=7", "save_every=7", "eval_rows=0", "final_eval_rows=0",
+                      _verifier("half_on_odd"), "prompt_sampling=pass_rate", "curriculum_floor=1e-4")) == 0
+    assert main(_args(sft_model, cut, *common, "prompt_sampling=pass_rate", "curriculum_floor=1e-4",
+                      "resume=true")) == 0
+    assert [r["reward/mean"] for r in _steps(cut)] == pytest.approx([r["reward/mean"] for r in c])
+    assert [r["curriculum/pass_1"] for r in _steps(cut)] == pytest.approx([r["curriculum/pass_1"] for r in c])
 
 
 # ----------------------------------------------------------------------------- the recipes, end to end
