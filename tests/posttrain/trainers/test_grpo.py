@@ -353,14 +353,14 @@ def test_injected_nan_stops_with_the_step_and_keeps_the_last_checkpoint(sft_mode
     import posttrain.trainers.grpo as grpo
 
     calls = {"n": 0}
-    real = grpo.ppo_policy_loss
+    real = grpo.policy_loss
 
     def flaky(*a, **k):
         calls["n"] += 1
         loss, m = real(*a, **k)
         return (loss * float("nan") if calls["n"] == 3 else loss), m
 
-    monkeypatch.setattr(grpo, "ppo_policy_loss", flaky)
+    monkeypatch.setattr(grpo, "policy_loss", flaky)
     out = tmp_path / "nan"
     assert main(_args(sft_model, out, _verifier("digits"), "max_steps=5", "save_every=1", "keep_checkpoints=10",
                       "final_eval_rows=0", "eval_rows=0")) == 1

@@ -368,14 +368,14 @@ def test_reward_model_path_and_value_from_the_reward_model(world, tmp_path):
 def test_injected_nan_stops_with_the_iteration_and_keeps_the_last_checkpoint(world, tmp_path, capsys, monkeypatch,
                                                                             vowels):
     calls = {"n": 0}
-    real = ppo.ppo_policy_loss
+    real = ppo.losses.policy_loss
 
     def flaky(*a, **k):
         calls["n"] += 1
         loss, m = real(*a, **k)
         return (loss * float("nan") if calls["n"] == 3 else loss), m
 
-    monkeypatch.setattr(ppo, "ppo_policy_loss", flaky)
+    monkeypatch.setattr(ppo.losses, "policy_loss", flaky)
     out = tmp_path / "nan"
     assert main(_args(world, out, "max_steps=5", "ppo_epochs=1", "minibatch_size=8", "save_every=1",
                       "keep_checkpoints=10")) == 1
