@@ -9,6 +9,7 @@ from __future__ import annotations
 import ast
 import json
 import importlib.util
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -153,3 +154,110 @@ def test_e7_report_and_plots_of_each_mode(mode, tmp_path):
         assert "Where the gain comes from" not in text and "a sample showing a counted behaviour" in text
     else:
         assert "Where the gain comes from" in text and "SFT greedy accuracy" in text and "**met**" not in text
+
+
+def _fake_e6_run(e6, arm: str, seed: int, gold: list[float] | None = None) -> dict:
+    """One run of `arm` as reproduce_e6.py records it: a step-0 (SFT) point, 4 evaluations, the final eval."""
+    dpo = e6.ARMS[arm].stage == "dpo"
+    steps = [0, 20, 40, 60, 80] if dpo else [0, 5, 10, 15, 20]
+    gold = gold or [-1.0, 0.3 + 0.01 * seed, 0.6, 0.5, 0.55 - 0.02 * seed]  # peak 0.6 mid-run
+    n = len(steps)
+    curves = {"progress": [s / steps[-1] for s in steps], "step": steps, "gold/reward": gold,
+              "gold/win_rate": [0.5] + [0.6 + 0.01 * k for k in range(n - 1)],
+              "gold/quality": [0.3] * n, "gold/in_band": [0.4] + [0.8] * (n - 1),
+              "proxy/reward": [0.0] + [1.0 + 0.2 * k for k in range(n - 1)],
+              "kl": [0.0] + [2.0 * k for k in range(1, n)]}
+    final = {"win_rate": 0.7 - 0.01 * seed - (0.05 if "ppo" in arm else 0.0), "gold_reward": gold[-1],
+             "mean_quality": 0.5, "frac_in_band": 0.9, "kl": 6.0, "proxy_reward": 1.8 if "ppo" in arm else 1.5}
+    return {"seed": seed, "seconds": 60.0 + seed, "run_dir": f"runs/{arm}-seed{seed}", "final": final,
+            "curves": curves}
+
+
+def _fake_e6_results(e6, tmp_path, arms=None) -> dict:
+    arms = list(e6.ARMS) if arms is None else arms
+    return {"mode": "quick", "seeds": [0, 1], "threads": 1, "recipe": "e6-quick.yaml",
+            "model": {"preset": "tiny", "parameters": 1_234_567}, "sft": {"mean_quality": 0.2, "frac_in_band": 0.4},
+            "rm": {"eval/accuracy": 0.8}, "shared_seconds": {"base+sft+prefs+rm": 120.0}, "runs_dir": str(tmp_path),
+            "arm_table": {a: e6.ARMS[a]._asdict() for a in arms},
+            "runs": {a: [_fake_e6_run(e6, a, s) for s in (0, 1)] for a in arms},
+            "total_seconds": 600.0, "pipeline_seconds": 900.0, "load_end": "1.00 1.00 1.00"}
+
+
+def test_e6_stability_leaves_out_step_0():
+    """Give-back, worst fall and monotonicity are on the evaluations after step 0, by hand on small curves."""
+    e6 = _load(SCRIPTS / "reproduce_e6.py")
+    # the first evaluation after step 0 dips far below the SFT point, then the run climbs to its peak at the end
+    dip = {"step": [0, 20, 40, 60, 80], "gold/reward": [0.2, -1.5, 0.1, 0.4, 0.6]}
+    st = e6.stability(dip)
+    assert st["give_back"] == 0.0 and st["evaluations"] == 4
+    assert st["worst_fall"] == 0.0 and st["monotonicity"] == 1.0
+    # by hand: after step 0 the curve is 0.5, 0.8, 0.6, 0.7, 0.3: peak 0.8, final 0.3 -> give-back 0.5; falls 0.2
+    # (0.8 -> 0.6) and 0.4 (0.7 -> 0.3) -> worst fall 0.4; 2 of 4 steps fall by more than 0.01 -> monotonicity 0.5
+    small = {"step": [0, 1, 2, 3, 4, 5], "gold/reward": [5.0, 0.5, 0.8, 0.6, 0.7, 0.3]}
+    st = e6.stability(small)
+    assert st["give_back"] == pytest.approx(0.5) and st["worst_fall"] == pytest.approx(0.4)
+    assert st["monotonicity"] == pytest.approx(0.5) and st["evaluations"] == 5
+    assert not hasattr(e6, "max_drawdown")  # the measure from the running best at step 0 is gone
+    # without a step-0 point every evaluation counts
+    assert e6.give_back(e6.after_start({"step": [10, 20], "gold/reward": [1.0, 0.25]})) == pytest.approx(0.75)
+
+
+def test_e6_report_and_plots_of_every_arm(tmp_path):
+    """analyse + report_md + plot on fabricated runs of every arm x 2 seeds: the headline table lists the like-with-like
+    arms first, the verdict compares dpo-offline with ppo-rm, the oracle arms get their own paragraph."""
+    e6 = _load(SCRIPTS / "reproduce_e6.py")
+    res = _fake_e6_results(e6, tmp_path)
+    # dpo-offline seed 1 dips at its first evaluation after step 0 and recovers to its peak at the end
+    res["runs"]["dpo-offline"][1] = _fake_e6_run(e6, "dpo-offline", 1, gold=[0.2, -1.5, 0.1, 0.4, 0.6])
+    an = e6.analyse(res)
+    assert list(an["summary"]) == list(e6.ARMS)
+    assert an["summary"]["dpo-offline"]["per_seed_give_back"][1] == 0.0
+    ppo = an["summary"]["ppo-rm"]  # seeds end at 0.55 and 0.53 below their 0.6 peak; both fall 0.6 -> 0.5 once
+    assert ppo["give_back"][0] == pytest.approx(statistics.fmean([0.6 - 0.55, 0.6 - 0.53]))
+    assert ppo["worst_fall"][0] == pytest.approx(0.1) and ppo["monotonicity"][0] == pytest.approx(2 / 3)
+    assert an["claims"]["compared"] == ["dpo-offline", "ppo-rm"]
+    assert set(an["claims"]["dpo_more_stable"]) == {"spread_of_final_win_rate", "spread_of_final_gold_reward",
+                                                   "give_back", "monotonicity", "worst_fall"}
+    assert an["models_in_memory"]["simpo-offline"]["models_in_memory"] == 1
+    assert an["models_in_memory"]["ppo-rm"]["models_in_memory"] == 4
+    res.update(an)
+    figs = e6.plot(res, tmp_path)
+    if importlib.util.find_spec("matplotlib") is not None:
+        assert figs == ["win_rate.png", "kl.png", "gold_vs_proxy.png"]
+        assert all((tmp_path / f).stat().st_size > 0 for f in figs)
+    text = e6.report_md(res, an, figs)
+    headline = text.split("## Final policies")[1].split("\n## ")[0]
+    rows = [line.split("|")[1].strip().strip("`") for line in headline.splitlines() if line.startswith("| `")]
+    assert rows == ["dpo-offline", "ppo-rm", "simpo-offline", "orpo-offline", "dpo-online-gold", "ppo-gold"]
+    groups = [line.split("|")[2].strip() for line in headline.splitlines() if line.startswith("| `")]
+    assert groups == ["like with like"] * 4 + ["oracle"] * 2
+    claim = text.split("## Does the seed's claim hold here?")[1].split("\n## ")[0]
+    assert "`dpo-offline` vs `ppo-rm`" in claim and "**DPO is more stable:" in claim and "give-back" in claim
+    assert "dpo-online-gold" not in claim.split("Other preference losses")[0]
+    assert "`simpo-offline`" in claim and "`orpo-offline`" in claim
+    oracle = text.split("## Oracle arms")[1].split("\n## ")[0]
+    assert "`dpo-online-gold`" in oracle and "`ppo-gold`" in oracle and "not the seed's setting" in oracle
+    assert "KTO" in text and "not implemented" in text and "max drawdown from the running best" in text
+    assert "after step 0" in text and "minus the final one" in text and "worst fall" in text
+    assert "| `simpo-offline` | dpo |" in text.split("## Simplicity")[1]
+
+
+def test_e6_report_without_the_headline_pair(tmp_path):
+    """--arms without dpo-offline / ppo-rm: no verdict, said so; the tables still render."""
+    e6 = _load(SCRIPTS / "reproduce_e6.py")
+    res = _fake_e6_results(e6, tmp_path, arms=["ppo-gold", "simpo-offline"])
+    an = e6.analyse(res)
+    assert an["claims"] is None and list(an["summary"]) == ["simpo-offline", "ppo-gold"]
+    text = e6.report_md({**res, **an}, an, [])
+    assert "Not judged" in text and "Not run as a pair" in text
+
+
+def test_e6_arms_option(capsys):
+    e6 = _load(SCRIPTS / "reproduce_e6.py")
+    assert e6.parse_args([]).arms == list(e6.ARMS)
+    assert e6.parse_args(["--arms", "ppo-rm,dpo-offline", "ppo-rm"]).arms == ["dpo-offline", "ppo-rm"]
+    with pytest.raises(SystemExit) as e:
+        e6.parse_args(["--arms", "dpo-offline", "kto-offline"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "unknown arm 'kto-offline'" in err and "choose from: dpo-offline, ppo-rm" in err
