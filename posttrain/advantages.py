@@ -238,9 +238,10 @@ def curriculum_weights(rates: torch.Tensor, seen: torch.Tensor, group_size: int,
     p^K + (1 - p)^K; the weight is the complement, 1 - p^K - (1 - p)^K (so problems that are always solved
     or always failed are down-weighted), never below `floor` (0 < floor <= 1: every problem stays
     reachable and a pass-rate estimate from few groups can be revised). Unseen problems weigh 1, the
-    most any problem can (as much as one of pass rate 1/2 at large K). Curriculum sampling in the spirit of DAPO's dynamic sampling
-    and of online difficulty filtering (Bae et al. 2025, "Online Difficulty Filtering for Reasoning
-    Oriented Reinforcement Learning"), which keep prompts of intermediate pass rate.
+    most any problem can (as much as one of pass rate 1/2 at large K). Curriculum sampling in the spirit
+    of DAPO's dynamic sampling and of balanced online difficulty filtering (Bae et al. 2025, "Online
+    Difficulty Filtering for Reasoning Oriented Reinforcement Learning"), which keep prompts of
+    intermediate pass rate; here as weights, not a filter.
     """
     if not 0.0 < floor <= 1.0:
         raise ValueError(f"curriculum_weights: floor must be in (0, 1], got {floor}")

@@ -55,7 +55,7 @@ STAGES: dict[str, Stage] = {
     "eval": Stage("eval", "gold metrics and win-rate of a model on held-out prompts", "posttrain.evaluation", "EvalConfig"),
     "prefs": Stage("prefs", "preference pairs: samples of the SFT model ranked by the gold preference (or a file)", "posttrain.preferences", "PrefsConfig"),
     "rm": Stage("rm", "reward model: Bradley-Terry on preference pairs, a scalar head on the SFT model", "posttrain.trainers.reward", "RMConfig"),
-    "dpo": Stage("dpo", "DPO / IPO / hinge on preference pairs, then gold win-rate against the SFT model", "posttrain.trainers.dpo", "DPOConfig"),
+    "dpo": Stage("dpo", "DPO / IPO / hinge / SimPO / ORPO on preference pairs, then gold win-rate against the SFT model", "posttrain.trainers.dpo", "DPOConfig"),
     "grpo": Stage("grpo", "GRPO with verifier and/or reward-model rewards, then held-out accuracy against the SFT model", "posttrain.trainers.grpo", "GRPOConfig"),
     "ppo": Stage("ppo", "PPO-for-RLHF against the reward model (or gold), then gold win-rate against the SFT model", "posttrain.trainers.ppo", "PPOConfig"),
 }

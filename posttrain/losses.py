@@ -326,7 +326,8 @@ def ppo_policy_loss(
     unclipped = -advantages * ratio  # (B, T)
     clipped = -advantages * ratio.clamp(1.0 - eps_low, 1.0 + eps_high)  # (B, T)
     per_token = torch.maximum(unclipped, clipped)  # (B, T)
-    loss = aggregate_token_loss(_weighted(per_token, weights, completion_mask), completion_mask, aggregation, max_tokens)
+    loss = aggregate_token_loss(_weighted(per_token, weights, completion_mask), completion_mask, aggregation,
+                                max_tokens)
     return loss, _ratio_metrics(ratio, log_ratio, advantages, completion_mask, eps_low, eps_high,
                                 clipped_branch=clipped.detach() > unclipped.detach())
 

@@ -1,4 +1,4 @@
-"""Direct Preference Optimization (Rafailov et al. 2023) on preference pairs; IPO / hinge variants, an online mode.
+"""Direct Preference Optimization (Rafailov et al. 2023) on preference pairs; IPO, hinge, SimPO, ORPO; online mode.
 
 CPU:        posttrain dpo --recipe tiny-summarize    (from nothing: SFT, pairs, reward model, online DPO, eval)
 Multi-GPU:  accelerate launch --num_processes 8 -m posttrain dpo --recipe tiny-summarize model.path=/path/to/hf-model
