@@ -151,16 +151,13 @@ def pair_loss(cfg: DPOConfig, policy_logps: torch.Tensor, policy_tokens: torch.T
         loss, metrics = simpo_loss(pc, pr, policy_tokens[:B], policy_tokens[B:], beta=cfg.beta, gamma=cfg.simpo_gamma)
     elif cfg.loss_type == "orpo":  # detail 11
         loss, metrics = orpo_loss(pc, pr, policy_tokens[:B], policy_tokens[B:], lam=cfg.beta)
-    if cfg.loss_type in REFERENCE_FREE:
-        if cfg.chosen_nll_weight:
-            loss = loss + cfg.chosen_nll_weight * -(pc / policy_tokens[:B].clamp(min=1)).mean()
-        return loss, metrics
-    rc, rr = ref["chosen"].to(pc.device), ref["rejected"].to(pc.device)  # (B,), (B,)
-    if cfg.loss_type == "ipo":  # detail 3: length-averaged log-probs for policy and reference (TRL)
-        pc, pr = pc / policy_tokens[:B], pr / policy_tokens[B:]
-        rc, rr = rc / ref["chosen_tokens"].to(pc.device), rr / ref["rejected_tokens"].to(pc.device)
-    loss, metrics = dpo_loss(pc, pr, rc, rr, beta=cfg.beta, loss_type=cfg.loss_type,
-                             label_smoothing=cfg.label_smoothing)
+    else:
+        rc, rr = ref["chosen"].to(pc.device), ref["rejected"].to(pc.device)  # (B,), (B,)
+        if cfg.loss_type == "ipo":  # detail 3: length-averaged log-probs for policy and reference (TRL)
+            pc, pr = pc / policy_tokens[:B], pr / policy_tokens[B:]
+            rc, rr = rc / ref["chosen_tokens"].to(pc.device), rr / ref["rejected_tokens"].to(pc.device)
+        loss, metrics = dpo_loss(pc, pr, rc, rr, beta=cfg.beta, loss_type=cfg.loss_type,
+                                 label_smoothing=cfg.label_smoothing)
     if cfg.chosen_nll_weight:  # detail 5 (RPO)
         nll = -(policy_logps[:B] / policy_tokens[:B].clamp(min=1)).mean()  # per-token NLL of chosen, mean over pairs
         loss = loss + cfg.chosen_nll_weight * nll
