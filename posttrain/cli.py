@@ -55,8 +55,9 @@ STAGES: dict[str, Stage] = {
     "eval": Stage("eval", "gold metrics and win-rate of a model on held-out prompts", "posttrain.evaluation", "EvalConfig"),
     "prefs": Stage("prefs", "preference pairs: samples of the SFT model ranked by the gold preference (or a file)", "posttrain.preferences", "PrefsConfig"),
     "rm": Stage("rm", "reward model: Bradley-Terry on preference pairs, a scalar head on the SFT model", "posttrain.trainers.reward", "RMConfig"),
-    "dpo": Stage("dpo", "DPO / IPO / hinge / SimPO / ORPO on preference pairs, then gold win-rate against the SFT model", "posttrain.trainers.dpo", "DPOConfig"),
+    "dpo": Stage("dpo", "DPO / IPO / hinge / SimPO / ORPO / KTO on preference pairs (KTO: unpaired rows too), then gold win-rate against the SFT model", "posttrain.trainers.dpo", "DPOConfig"),
     "grpo": Stage("grpo", "GRPO with verifier and/or reward-model rewards, then held-out accuracy against the SFT model", "posttrain.trainers.grpo", "GRPOConfig"),
+    "distill": Stage("distill", "on-policy distillation: the student samples, a teacher scores its tokens (reverse KL / JSD), then held-out accuracy against the SFT model and the teacher", "posttrain.trainers.distill", "DistillConfig"),
     "ppo": Stage("ppo", "PPO-for-RLHF against the reward model (or gold), then gold win-rate against the SFT model", "posttrain.trainers.ppo", "PPOConfig"),
 }
 
@@ -123,12 +124,18 @@ def _other_process_waits(done: Callable[[], bool], what: str) -> bool:
     return True
 
 
-def ensure_stage(res: Resolved, stage: str) -> Path:
+def ensure_stage(res: Resolved, stage: str, model: str | None = None) -> Path:
     """The output of `stage` for this recipe, running that stage first (with the recipe's settings) if missing.
+    `model`: the same stage of this recipe run with another model (`Resolved.with_model`: its own run tree), e.g.
+    a distillation teacher of another size.
 
     A stage's output is `runs/<recipe>/<stage>/final` (a model directory or a data file),
     complete once it exists: stages write it atomically as their last act.
     """
+    if model is not None and model != res.model.path:
+        res = res.with_model(model)
+    else:
+        model = None
     if stage == "base" or (stage == "sft" and res.model.start_from == "base" and res.stage != "sft"):
         return ensure_base(res)  # model.start_from=base: the given model is the "SFT model" of later stages
     if stage not in STAGES:
@@ -136,10 +143,11 @@ def ensure_stage(res: Resolved, stage: str) -> Path:
     final = res.stage_dir(stage) / "final"
     if final.exists():
         return final
-    print(f"[posttrain] no {stage} output at {final}; running `posttrain {stage} --recipe {res.recipe}` first")
+    other = f" model.path={model} run.output_dir={res.run.output_dir}" if model is not None else ""
+    print(f"[posttrain] no {stage} output at {final}; running `posttrain {stage} --recipe {res.recipe}{other}` first")
     cfg_cls, run = STAGES[stage].load()
     sub = res.for_stage(stage, cfg_cls)
-    return run(sub, lambda name: ensure_stage(sub, name))
+    return run(sub, lambda name, model=None: ensure_stage(sub, name, model))
 
 
 # ----------------------------------------------------------------------------- commands
@@ -215,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         configure(**asdict(res.rollout))  # every stage of this command generates through it (vllm: checked here)
         _quiet_libraries()
         try:
-            run(res, lambda name: ensure_stage(res, name))
+            run(res, lambda name, model=None: ensure_stage(res, name, model))
         finally:
             configure()  # the process-wide defaults again (a caller of main() generates as before)
         return 0

@@ -125,7 +125,7 @@ class RolloutConfig:
 
 SHARED_SECTIONS: dict[str, type] = {"task": TaskConfig, "model": ModelConfig, "run": RunConfig, "lora": LoRAConfig,
                                     "rollout": RolloutConfig}
-STAGE_SECTIONS = ("sft", "prefs", "rm", "dpo", "ppo", "grpo", "eval")
+STAGE_SECTIONS = ("sft", "prefs", "rm", "dpo", "ppo", "grpo", "distill", "eval")
 
 
 # ----------------------------------------------------------------------------- type checking
@@ -351,6 +351,14 @@ class Resolved:
         return {"recipe": self.recipe, "stage": self.stage, "task": to_dict(self.task), "model": to_dict(self.model),
                 "run": to_dict(self.run), "lora": to_dict(self.lora), "rollout": to_dict(self.rollout),
                 self.stage: to_dict(self.stage_cfg)}
+
+    def with_model(self, model: str) -> "Resolved":
+        """This recipe with another model (model.path: a preset or a directory), in its own run tree
+        <run.output_dir>/model-<name>/ so that its stages never mix with this model's."""
+        from dataclasses import replace
+
+        out = Path(self.run.output_dir) / f"model-{Path(model).name}"
+        return replace(self, model=replace(self.model, path=model), run=replace(self.run, output_dir=str(out)))
 
     def for_stage(self, stage: str, stage_cls: type) -> "Resolved":
         """The config of another stage of the same recipe (used to build a prerequisite stage)."""

@@ -120,6 +120,33 @@ def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tens
     return _place(logp, ent, completion_mask, c)
 
 
+def completion_logits(model, input_ids: torch.Tensor, attention_mask: torch.Tensor, completion_mask: torch.Tensor,
+                      *, temperature: float = 1.0) -> tuple[torch.Tensor, int]:
+    """The full next-token distributions where `completion_mask` scores: (logits (B, T-c, V) fp32, c), c the first
+    column the mask selects, so logits[:, j] is the distribution of input_ids[:, c + j] given the tokens before
+    it (the same alignment as `sequence_logprobs`), divided by `temperature`. Differentiable under autograd.
+
+    For losses on whole distributions (on-policy distillation's `losses.token_divergence`); memory is B x (T-c)
+    x V floats, so callers bound B x T by a token budget per micro-batch. The lean path when it applies."""
+    B, T = input_ids.shape
+    dev = model_device(model)
+    input_ids, attention_mask, completion_mask = input_ids.to(dev), attention_mask.to(dev), completion_mask.to(dev)
+    cols = completion_mask[:, 1:].any(0).nonzero()
+    if T < 2 or cols.numel() == 0:
+        raise ValueError("completion_logits: completion_mask selects no column after the first")
+    c = int(cols[0]) + 1
+    if lean_support(model, T, mode="train")[0]:
+        x = lean.lean_last_layer(model, input_ids, attention_mask)[:, c - 1:T - 1]  # (B, T-c, d)
+        return lean.lean_logits(model, x, temperature).float(), c
+    kw: dict[str, Any] = {"position_ids": position_ids_from_mask(attention_mask)} if accepts(model, "position_ids") \
+        else {}
+    if accepts(model, "logits_to_keep") and c > 1:
+        kw["logits_to_keep"] = T - c + 1
+    logits = model(input_ids=input_ids, attention_mask=attention_mask, **kw).logits  # (B, T or T-c+1, V)
+    logits = logits[:, -(T - c + 1):-1].float()  # (B, T-c, V)
+    return (logits if temperature == 1.0 else logits / temperature), c
+
+
 def _place(logp: torch.Tensor, ent: torch.Tensor | None, completion_mask: torch.Tensor, c: int):
     """(B, T-c) per-token values for columns c.. -> (B, T) aligned with input_ids, 0 outside completion_mask."""
     m = completion_mask[:, c:].to(logp.dtype)

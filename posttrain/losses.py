@@ -13,6 +13,7 @@ masked mean / sum comes from `posttrain.logprobs` (the single implementation).
 - `dpo_loss`: DPO (sigmoid, with conservative-DPO label smoothing), IPO, SLiC hinge.
 - `simpo_loss`: SimPO, the reference-free length-normalised margin loss.
 - `orpo_loss`: ORPO, the SFT loss plus an odds-ratio term, reference-free.
+- `kto_loss`: KTO, unpaired desirable / undesirable completions against a batch KL reference point.
 - `bradley_terry_loss`: the reward-model pairwise loss, optional margin.
 - `ppo_policy_loss`: PPO clipped surrogate with DAPO clip-higher and three aggregations.
 - `gspo_policy_loss`: GSPO's sequence-level clipped ratio, and its token-level variant GSPO-token.
@@ -22,6 +23,8 @@ masked mean / sum comes from `posttrain.logprobs` (the single implementation).
   sampler and the trainer; `sampler_mismatch`: the gap between them as metrics.
 - `aggregate_token_loss`: those aggregations on their own, so that a GRPO trainer reduces its
   per-token KL term exactly like the policy term.
+- `token_divergence`: on-policy distillation's per-token reverse / forward KL or GKD's generalised JSD
+  between the student's and the teacher's full next-token distributions.
 - `kl_penalty`: Schulman's k1 / k2 / k3 per-token estimators.
 - `value_loss`: PPO clipped value loss.
 
@@ -58,6 +61,7 @@ import torch.nn.functional as F
 from posttrain.logprobs import masked_mean, masked_sum, masked_var
 
 Aggregation = Literal["seq_mean_token_mean", "token_mean", "seq_mean_token_sum_norm"]
+Divergence = Literal["reverse_kl", "forward_kl", "jsd"]
 PolicyLoss = Literal["clip", "gspo", "gspo_token", "cispo"]
 Correction = Literal["none", "tis", "mask"]
 CorrectionLevel = Literal["token", "sequence"]
@@ -210,6 +214,60 @@ def orpo_loss(
             "log_odds_ratio": lo.mean().item(), "rewards/accuracy": (lo > 0).float().mean().item(),
             "rewards/margin": (lam * lo).mean().item(),
             "logps/chosen": avg_c.detach().mean().item(), "logps/rejected": avg_r.detach().mean().item(),
+        }
+    return loss, metrics
+
+
+def kto_loss(
+    policy_logps: torch.Tensor,
+    reference_logps: torch.Tensor,
+    desirable: torch.Tensor,
+    kl_policy_logps: torch.Tensor,
+    kl_reference_logps: torch.Tensor,
+    *,
+    beta: float,
+    desirable_weight: float = 1.0,
+    undesirable_weight: float = 1.0,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """KTO (Ethayarajh et al. 2024, "KTO: Model Alignment as Prospect Theoretic Optimization", eq. 7-8):
+    unpaired completions, each labelled desirable or undesirable, no pairs.
+
+    r(x, y) = log pi(y|x) - log pi_ref(y|x) (summed over the completion's tokens, (B,) inputs), and the
+    reference point z0 = max(0, mean_j [log pi(y'_j|x_j) - log pi_ref(y'_j|x_j)]), a batch estimate of
+    KL(pi || pi_ref) from completions y'_j that do NOT belong to their prompt x_j (`kl_*_logps`, (B',)
+    summed log-probs: the paper and TRL pair each prompt with another row's completion); z0 carries no
+    gradient. Per row the loss is
+        desirable:    w_D (1 - sigmoid(beta (r - z0)))
+        undesirable:  w_U (1 - sigmoid(beta (z0 - r)))
+    averaged over the B rows (the paper's lambda_y - v(x, y)). The paper sets w_D n_D / (w_U n_U) in
+    [1, 4/3] when the classes are unbalanced. `desirable` is (B,) bool.
+
+    Metrics: kl (z0), rewards/chosen and rewards/rejected (mean beta r of desirable / undesirable rows, NaN
+    when the batch has none), rewards/margin (their difference), rewards/accuracy (fraction of rows on the
+    right side of z0: r > z0 if desirable, r < z0 if not), logps/chosen, logps/rejected.
+    """
+    if beta <= 0 or desirable_weight < 0 or undesirable_weight < 0:
+        raise ValueError(f"kto_loss: beta must be > 0 and the weights >= 0, got {beta}, {desirable_weight}, "
+                         f"{undesirable_weight}")
+    desirable = desirable.bool()
+    z0 = (kl_policy_logps - kl_reference_logps).mean().clamp(min=0).detach()  # ()
+    r = policy_logps - reference_logps  # (B,)
+    value = torch.where(desirable, torch.sigmoid(beta * (r - z0)), torch.sigmoid(beta * (z0 - r)))  # (B,)
+    weight = torch.where(desirable, torch.full_like(r, desirable_weight), torch.full_like(r, undesirable_weight))
+    loss = (weight * (1 - value)).mean()
+    with torch.no_grad():
+        rd = (beta * r).detach()
+
+        def mean_of(x: torch.Tensor, sel: torch.Tensor) -> float:
+            return x[sel].mean().item() if sel.any() else float("nan")
+
+        chosen, rejected = mean_of(rd, desirable), mean_of(rd, ~desirable)
+        metrics = {
+            "kl": z0.item(), "rewards/chosen": chosen, "rewards/rejected": rejected,
+            "rewards/margin": chosen - rejected,
+            "rewards/accuracy": torch.where(desirable, r > z0, r < z0).float().mean().item(),
+            "logps/chosen": mean_of(policy_logps.detach(), desirable),
+            "logps/rejected": mean_of(policy_logps.detach(), ~desirable),
         }
     return loss, metrics
 
@@ -584,6 +642,53 @@ def rollout_correction(
         metrics["correction/weight_mean"] = masked_mean(weights, keep).item()
         metrics["correction/max_weight"] = weights[keep].max().item() if keep.any() else float("nan")
     return weights, keep, metrics
+
+
+# ----------------------------------------------------------------------------- distillation
+def token_divergence(
+    student_logits: torch.Tensor,
+    teacher_logits: torch.Tensor,
+    mask: torch.Tensor,
+    *,
+    kind: Divergence = "reverse_kl",
+    beta: float = 0.5,
+) -> torch.Tensor:
+    """Per-token divergence between the student's and the teacher's next-token distributions over the whole
+    vocabulary: (..., V) logits of both at the same positions, a (...) mask -> (...) values, 0 outside it.
+
+    With S = softmax(student_logits) and P = softmax(teacher_logits) at each position:
+    - "reverse_kl": KL(S || P) = sum_v S (log S - log P), mode-seeking; the per-token loss of on-policy
+      distillation (Agarwal et al. 2024, GKD, with the student's own samples; Gu et al. 2024, MiniLLM).
+    - "forward_kl": KL(P || S) = sum_v P (log P - log S), mean-seeking (the classic distillation loss,
+      Hinton et al. 2015, evaluated here on the student's samples).
+    - "jsd": GKD's generalised Jensen-Shannon divergence (Agarwal et al. 2024, eq. 1),
+        JSD(beta) = beta KL(P || M) + (1 - beta) KL(S || M),  M = beta P + (1 - beta) S,  beta in (0, 1);
+      it tends to beta x forward KL as beta -> 0 and to (1 - beta) x reverse KL as beta -> 1 (TRL's
+      GKDTrainer names the two ends beta 0 and 1 and special-cases them; here they are the other two kinds).
+    Differentiable in both arguments (pass the teacher's logits detached); computed in fp32 from
+    log_softmax, so each value is >= 0 up to rounding. Temperature: divide the logits before the call.
+    """
+    if kind not in ("reverse_kl", "forward_kl", "jsd"):
+        raise ValueError(f"token_divergence: unknown kind {kind!r}; expected 'reverse_kl', 'forward_kl' or 'jsd'")
+    if kind == "jsd" and not 0 < beta < 1:
+        raise ValueError(f"token_divergence: jsd needs 0 < beta < 1, got {beta}")
+    if student_logits.shape != teacher_logits.shape or student_logits.shape[:-1] != mask.shape:
+        raise ValueError(f"token_divergence: student {tuple(student_logits.shape)}, teacher "
+                         f"{tuple(teacher_logits.shape)} and mask {tuple(mask.shape)} must agree (..., V) / (...)")
+    mask = mask.bool()
+    keep = mask[..., None]
+    # select (not multiply): garbage logits outside the mask reach neither the value nor the gradient
+    log_s = F.log_softmax(torch.where(keep, student_logits.float(), torch.zeros((), device=mask.device)), -1)
+    log_p = F.log_softmax(torch.where(keep, teacher_logits.float(), torch.zeros((), device=mask.device)), -1)
+    if kind == "reverse_kl":
+        per_token = (log_s.exp() * (log_s - log_p)).sum(-1)  # (...)
+    elif kind == "forward_kl":
+        per_token = (log_p.exp() * (log_p - log_s)).sum(-1)  # (...)
+    else:
+        log_m = torch.logaddexp(log_p + math.log(beta), log_s + math.log(1 - beta))  # (..., V)
+        per_token = beta * (log_p.exp() * (log_p - log_m)).sum(-1) \
+            + (1 - beta) * (log_s.exp() * (log_s - log_m)).sum(-1)  # (...)
+    return torch.where(mask, per_token, torch.zeros_like(per_token))
 
 
 def kl_penalty(

@@ -137,6 +137,8 @@ def import_gguf(gguf_path: str | os.PathLike, out_dir: str | os.PathLike, say=pr
                     setattr(obj, attr, None)
     model.is_quantized = False
     out.parent.mkdir(parents=True, exist_ok=True)
+    need_disk(sum(p.numel() * p.element_size() for p in model.parameters()) + 64 * 2**20, out.parent,
+              f"import {src.name} (the dequantized fp32 model and its tokenizer)")
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
         model.save_pretrained(tmp)
@@ -157,6 +159,15 @@ def import_gguf(gguf_path: str | os.PathLike, out_dir: str | os.PathLike, say=pr
         raise
     say(f"[models] {stamp['parameters'] / 1e6:.1f}M parameters -> {out}")
     return out
+
+
+def need_disk(nbytes: int, where: str | os.PathLike, what: str) -> None:
+    """A ModelError before a large write that `where`'s file system has no room for (a full disk would otherwise
+    stop the write half way, with a serializer's error)."""
+    free = shutil.disk_usage(where).free
+    if free < nbytes:
+        raise ModelError(f"not enough disk space to {what}: it takes {nbytes / 2**20:.0f} MiB and {where} has "
+                         f"{free / 2**20:.0f} MiB free")
 
 
 def imported_from(gguf_path: str | os.PathLike, out_dir: str | os.PathLike) -> bool:

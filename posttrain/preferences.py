@@ -59,6 +59,7 @@ from posttrain.logprobs import masked_sum, packed_logprobs, sequence_logprobs
 from posttrain.data import DataError, collate_completions
 
 PAIR_FIELDS = ("prompt", "chosen", "rejected")
+UNPAIRED_FIELDS = ("prompt", "completion", "label")  # TRL's unpaired preference format (KTO)
 
 
 @dataclass
@@ -233,11 +234,18 @@ def read_pairs(path: str | Path) -> list[dict]:
         raise DataError(f"{p}: unsupported preference file type {p.suffix or '(no extension)'!r}; "
                         "use .jsonl, .json or .parquet")
     rows = []
+    unpaired = isinstance(raw[0][1], dict) and "label" in raw[0][1] if raw else False  # the first row decides
     for number, row in raw:
         if not isinstance(row, dict):
             raise DataError(f"{p}: row {number}: expected a JSON object with prompt, chosen, rejected")
         if "meta_json" in row and "meta" not in row:  # parquet written by posttrain.data.save_rows
             row = dict(row, meta=json.loads(row.pop("meta_json") or "null"))
+        if unpaired:
+            rows.append(_unpaired_row(p, number, row))
+            continue
+        if "label" in row:
+            raise DataError(f"{p}: row {number}: field 'label': an unpaired row (prompt, completion, label) in a "
+                            "file of pairs (its first row has prompt, chosen, rejected); one format per file")
         for f in PAIR_FIELDS:
             if f not in row:
                 raise DataError(f"{p}: row {number}: field '{f}': missing")
@@ -250,6 +258,83 @@ def read_pairs(path: str | Path) -> list[dict]:
     if not rows:
         raise DataError(f"{p}: no rows")
     return rows
+
+
+def _unpaired_row(p: Path, number: int, row: dict) -> dict:
+    """One row of TRL's unpaired preference format: prompt, completion, label (true: desirable)."""
+    for f in UNPAIRED_FIELDS:
+        if f not in row:
+            raise DataError(f"{p}: row {number}: field '{f}': missing (an unpaired file's rows have prompt, "
+                            "completion, label)")
+    for f in ("prompt", "completion"):
+        if not isinstance(row[f], str):
+            raise DataError(f"{p}: row {number}: field '{f}': expected text, got {type(row[f]).__name__}")
+    if not isinstance(row["label"], bool):
+        raise DataError(f"{p}: row {number}: field 'label': expected true or false, got {row['label']!r}")
+    if row.get("meta") is not None and not isinstance(row["meta"], dict):
+        raise DataError(f"{p}: row {number}: field 'meta': expected a JSON object or null")
+    return {"prompt": row["prompt"], "completion": row["completion"], "label": row["label"], "meta": row.get("meta"),
+            "_row": number}
+
+
+def is_unpaired(rows: list[dict]) -> bool:
+    """Rows read from an unpaired file (prompt, completion, label) rather than pairs."""
+    return bool(rows) and "label" in rows[0]
+
+
+def unpair(rows: list[dict]) -> list[dict]:
+    """Pairs as unpaired rows: each pair gives its chosen side as desirable and its rejected side as undesirable
+    (TRL's unpair_preference_dataset); unpaired rows pass through. Row numbers stay those of the source."""
+    if is_unpaired(rows):
+        return list(rows)
+    return [{"prompt": r["prompt"], "completion": r[side], "label": side == "chosen", "meta": r.get("meta"),
+             "_row": r["_row"]} for r in rows for side in ("chosen", "rejected")]
+
+
+def check_unpaired(rows: list[dict], source: str, on_bad: Literal["error", "skip"], tokenizer,
+                   max_length: int | None = None) -> tuple[list[TokenizedPair], list[bool], BadRows]:
+    """KTO's rows: unpaired (prompt, completion, label) rows (pairs are `unpair`ed first), checked and tokenized as
+    TokenizedPairs whose `chosen` is the row's completion and whose `rejected` is its KL partner: the completion of
+    the next row (cyclically) with ANOTHER prompt, under this row's prompt. Those mismatched (x, y') give KTO's
+    reference point z0 = KL(pi || pi_ref), estimated from completions that are not answers to their prompt.
+    Returns (rows as pairs, their labels, BadRows). Bad: an empty prompt or completion; too long (either
+    completion); fewer than two distinct prompts (no KL partner)."""
+    rows = unpair(rows)
+    bad = BadRows(source)
+    hint = " (set on_bad_rows=skip to drop such rows)"
+    ok = []
+    for row in rows:
+        empty = [f for f in UNPAIRED_FIELDS[:2] if not row[f].strip()]
+        if empty:
+            if on_bad == "error":
+                raise DataError(f"{source}: row {row['_row']}: field '{empty[0]}': empty text{hint}")
+            bad.add("empty", row["_row"])
+        else:
+            ok.append(row)
+    if len({r["prompt"] for r in ok}) < 2:
+        raise DataError(f"{source}: KTO needs at least two distinct prompts (its KL reference point pairs each prompt "
+                        f"with another prompt's completion); got {len({r['prompt'] for r in ok})}")
+    n = len(ok)
+    partner = []
+    for i, r in enumerate(ok):
+        j = next(k % n for k in range(i + 1, i + n) if ok[k % n]["prompt"] != r["prompt"])
+        partner.append(j)
+    eos = [tokenizer.eos_token_id]
+    prompts = encode_prompts(tokenizer, [r["prompt"] for r in ok])
+    completions = tokenizer([r["completion"] for r in ok], add_special_tokens=False)["input_ids"]
+    pairs, labels = [], []
+    for i, row in enumerate(ok):
+        c, k = completions[i], completions[partner[i]]
+        length = len(prompts[i]) + max(len(c), len(k)) + 1
+        if max_length is not None and length > max_length:
+            if on_bad == "error":
+                raise DataError(f"{source}: row {row['_row']}: prompt + completion (or its KL partner) is {length} "
+                                f"tokens, longer than model.max_length={max_length}{hint}")
+            bad.add("too long", row["_row"])
+            continue
+        pairs.append(TokenizedPair(prompts[i], c + eos, k + eos, row["_row"]))
+        labels.append(bool(row["label"]))
+    return pairs, labels, bad
 
 
 @dataclass
@@ -295,6 +380,9 @@ def check_pairs(rows: list[dict], source: str, on_bad: Literal["error", "skip"],
     """
     if on_bad not in ("error", "skip"):
         raise ValueError(f"on_bad must be 'error' or 'skip', got {on_bad!r}")
+    if is_unpaired(rows):
+        raise DataError(f"{source}: its rows are unpaired (prompt, completion, label): only dpo.loss_type=kto trains on "
+                        "them; this stage needs pairs (prompt, chosen, rejected)")
     bad = BadRows(source)
     hint = " (set on_bad_rows=skip to drop such rows)"
 

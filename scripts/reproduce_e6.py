@@ -8,11 +8,12 @@ PPO against a reward model trained on those pairs. The script runs ARMS, each fr
     ppo-rm           PPO against the reward model trained on those pairs (`ppo.reward=rm`)
     simpo-offline    SimPO on those pairs (`dpo.loss_type=simpo dpo.beta=2.0 dpo.simpo_gamma=0.5`)
     orpo-offline     ORPO on those pairs (`dpo.loss_type=orpo dpo.beta=0.1`)
+    kto-offline      KTO on those pairs unpaired: each chosen side a desirable row, each rejected side an
+                     undesirable one (`dpo.loss_type=kto dpo.beta=0.1`)
   oracle (gold labels or the gold reward; NOT the seed's setting, an upper reference):
     dpo-online-gold  the recipe's online DPO: pairs regenerated from the policy, labelled by the gold preference
     ppo-gold         PPO with the gold reward instead of the reward model (`ppo.reward=gold`)
-  The verdict ("DPO is simpler", "DPO is more stable") compares dpo-offline with ppo-rm only. KTO is not
-  implemented in this toolkit and is not an arm.
+  The verdict ("DPO is simpler", "DPO is more stable") compares dpo-offline with ppo-rm only.
 
 Pipeline, through the public CLI only (`python -m posttrain STAGE --recipe ...`, one subprocess per run):
   1. base model + tokenizer, SFT, preference pairs (SFT samples ranked by the gold preference
@@ -28,12 +29,12 @@ Compute budget: every arm gets about the same number of sequence forward+backwar
 completions, at steps 10, 20, ..., 70); PPO: 20 iterations x 64 rollouts x 2 epochs x 2 models (policy, value)
 = 5,120 sequences (+ 20 x 64 samples). Measured wall times are reported next to the results.
 
-CPU:  python scripts/reproduce_e6.py --quick      tiny preset (~1.2M parameters), all six arms x 3 seeds: not timed
-                                                   yet with six arms, roughly 20-30 min with --threads 1 on 2 CPU
+CPU:  python scripts/reproduce_e6.py --quick      tiny preset (~1.2M parameters), all seven arms x 3 seeds: not timed
+                                                   yet with seven arms, roughly 20-30 min with --threads 1 on 2 CPU
                                                    cores (the two-arm version measured 7-11 min; RESULTS.md, E6)
       python scripts/reproduce_e6.py --quick --arms dpo-offline ppo-rm    the headline arms only (about the
                                                    two-arm time)
-      python scripts/reproduce_e6.py              small preset (~11M parameters, the seed's 10M+): not timed with six
+      python scripts/reproduce_e6.py              small preset (~11M parameters, the seed's 10M+): not timed with seven
                                                    arms; the per-stage timings under ESTIMATE give at most ~3.3 h
                                                    with --threads 1 on 2 CPU cores (the two-arm run took 58 min)
       python scripts/reproduce_e6.py --estimate   times a few steps of every stage on `small`, prints the estimate
@@ -42,7 +43,7 @@ CPU:  python scripts/reproduce_e6.py --quick      tiny preset (~1.2M parameters)
 Multi-GPU: every stage accepts `accelerate launch`, PPO too (it shards rollouts by prompt and gathers them; see
            "Several processes" in posttrain/trainers/ppo.py); this script runs every stage as one process, one
            after the other.
-Options: --out DIR (default runs/e6 or runs/e6-quick), --seeds 0 1 2, --arms NAME ... (default: all six; also
+Options: --out DIR (default runs/e6 or runs/e6-quick), --seeds 0 1 2, --arms NAME ... (default: all seven; also
          comma-separated), --threads N (torch threads per run; 0 = torch's default), --fresh (redo runs whose
          results exist; by default finished runs are reused; with a subset of --arms only those arms' runs).
 """
@@ -91,6 +92,8 @@ ARMS: dict[str, Arm] = {
                          "SimPO (reference-free) on the reward model's pairs", LIKE),
     "orpo-offline": Arm("dpo", ("dpo.online=false", "dpo.loss_type=orpo", "dpo.beta=0.1"),
                         "ORPO (reference-free, with SFT loss) on the reward model's pairs", LIKE),
+    "kto-offline": Arm("dpo", ("dpo.online=false", "dpo.loss_type=kto", "dpo.beta=0.1"),
+                       "KTO on the reward model's pairs, unpaired (chosen: desirable, rejected: undesirable)", LIKE),
     "dpo-online-gold": Arm("dpo", ("dpo.online=true", "dpo.online_labeler=gold"),
                            "online DPO, pairs from the policy labelled by the gold preference (the recipe's)", ORACLE),
     "ppo-gold": Arm("ppo", ("ppo.reward=gold",), "PPO with the gold reward instead of the reward model", ORACLE),
@@ -98,6 +101,7 @@ ARMS: dict[str, Arm] = {
 HEADLINE = ("dpo-offline", "ppo-rm")  # the verdict compares these two only
 ORACLE_PAIR = ("dpo-online-gold", "ppo-gold")
 COLORS = {"dpo-offline": "tab:blue", "ppo-rm": "tab:red", "simpo-offline": "tab:green", "orpo-offline": "tab:purple",
+          "kto-offline": "tab:brown",
           "dpo-online-gold": "tab:cyan", "ppo-gold": "tab:orange"}
 
 # Settings on top of the shipped tiny-summarize recipe. Quick: the recipe as shipped (its numbers were
@@ -130,6 +134,8 @@ MODELS_IN_MEMORY = {
                          "loads the SFT model for a moment)"),
     "orpo-offline": (1, "the policy only: a reference-free loss, no reference log-probs at all (the KL evaluation "
                         "loads the SFT model for a moment)"),
+    "kto-offline": (1, "the policy; the reference's log-probs of every row and of its KL partner are precomputed "
+                       "before training (trainers/dpo.py); the KL evaluation loads the SFT model for a moment"),
     "dpo-online-gold": (1, "the policy; reference log-probs precomputed; the reference is loaded for a moment at "
                            "each pair regeneration (peak 2)"),
     "ppo-rm": (4, "policy, value model, frozen reference, reward model (trainers/ppo.py)"),
@@ -478,7 +484,7 @@ def report_md(results: dict, an: dict, plots: list[str]) -> str:
         L.append(f"| `{arm}` | {ARMS[arm].stage} | {len(st['hyperparameters'])} | {st['code_lines']} | "
                  f"{st['code_lines_with_prerequisites']} | {models[arm]['models_in_memory']}: "
                  f"{models[arm]['models_note']} |")
-    L += ["", "Hyperparameters and code lines are the trainer's (one DPO trainer runs DPO, SimPO and ORPO; one PPO "
+    L += ["", "Hyperparameters and code lines are the trainer's (one DPO trainer runs DPO, SimPO, ORPO and KTO; one PPO "
           "trainer runs both PPO arms). Hyperparameters: fields of the stage config minus plumbing (files, logging, "
           "evaluation, checkpoints, seed). Code lines: non-blank, non-comment, non-docstring lines of "
           "`posttrain/trainers/<trainer>.py`; PPO's prerequisites add the reward-model trainer "
@@ -518,7 +524,7 @@ def report_md(results: dict, an: dict, plots: list[str]) -> str:
                      f"({fmt(p['proxy_reward'][0])} vs {fmt(d['proxy_reward'][0])} `dpo-offline`) but the lower gold "
                      f"reward ({fmt(p['gold_reward'][0])} vs {fmt(d['gold_reward'][0])}): it climbs the reward "
                      "model, errors included (Gao et al. 2022).")
-    others = [a for a in ("simpo-offline", "orpo-offline") if a in s]
+    others = [a for a in ("simpo-offline", "orpo-offline", "kto-offline") if a in s]
     if others:
         ref = s.get("dpo-offline")
         L.append("- Other preference losses on the same pairs (not part of the verdict): " + "; ".join(
@@ -541,9 +547,9 @@ def report_md(results: dict, an: dict, plots: list[str]) -> str:
         L.append("Not run as a pair (`--arms`)" + (f"; this run had {', '.join(f'`{a}`' for a in have)}, in the "
                                                    "tables above." if have else "."))
     L += ["", "Caveats: " + f"{len(results['seeds'])} seeds is a small sample (a spread is one number from "
-          f"{len(results['seeds'])}); KTO (Ethayarajh et al. 2024) is not implemented in this toolkit, so it is not "
-          "an arm; SimPO and ORPO run at one setting each (SimPO beta 2.0, gamma 0.5; ORPO lambda 0.1) with DPO's "
-          "learning rate, not tuned here; every arm shares one SFT model and one compute budget in sequence passes, "
+          f"{len(results['seeds'])}); SimPO, ORPO and KTO run at one setting each (SimPO beta 2.0, gamma 0.5; ORPO "
+          "lambda 0.1; KTO beta 0.1, both weights 1, on the pairs unpaired: as many desirable as undesirable rows) "
+          "with DPO's learning rate, not tuned here; every arm shares one SFT model and one compute budget in sequence passes, "
           "not in wall time; the gold reward that the stability measures use is evaluated on 100 held-out prompts "
           "at a handful of evaluations per run (the count is in the stability table).", "", "## Plots", ""]
     L += [f"![{f}]({f})" for f in plots] or ["(matplotlib is not installed: no plots)"]

@@ -1,4 +1,4 @@
-"""Direct Preference Optimization (Rafailov et al. 2023) on preference pairs; IPO, hinge, SimPO, ORPO; online mode.
+"""Direct Preference Optimization (Rafailov et al. 2023) on preference pairs; IPO, hinge, SimPO, ORPO, KTO; online mode.
 
 CPU:        posttrain dpo --recipe tiny-summarize    (from nothing: SFT, pairs, reward model, online DPO, eval)
 Multi-GPU:  accelerate launch --num_processes 8 -m posttrain dpo --recipe tiny-summarize model.path=/path/to/hf-model
@@ -28,9 +28,18 @@ Implementation details it follows, each with its source and flag (tested in test
     with l the per-token mean log-prob: reference-free (`losses.simpo_loss`), so no reference log-probs are taken.
 11. ORPO (Hong et al. 2024, eq. 6-7; `loss_type=orpo`, `beta` as ORPO's lambda, as TRL names it): the chosen
     side's per-token NLL + lambda x -log sigmoid(log-odds ratio) (`losses.orpo_loss`): one stage, reference-free.
+12. KTO (Ethayarajh et al. 2024, eq. 7-8; `loss_type=kto`, `beta`, `desirable_weight`, `undesirable_weight`):
+    unpaired completions labelled desirable or not (TRL's unpaired format: prompt, completion, label; a file of
+    pairs is unpaired as TRL's unpair_preference_dataset does), each pushed above or below the reference point
+    z0, a KL(pi || pi_ref) estimate from completions under ANOTHER row's prompt (`losses.kto_loss`). Each row
+    travels as a pair (its completion, its KL partner) so prefix sharing and the precomputed reference apply
+    (`preferences.check_unpaired`).
 
 Deviations and limits:
 - IPO on length-averaged log-probs (as TRL); Azar et al. define it on sequence log-likelihoods.
+- KTO's z0 is the mean over each micro-batch's KL partners (TRL: over the device batch, gathered across
+  processes); each row's KL partner is fixed (the next row with another prompt), not redrawn per batch. Online
+  KTO and KTO with chosen_nll_weight are config errors.
 - Online DPO labels a batch of pairs every online_every steps; Guo et al. label fresh pairs at every step.
 - reference=precomputed: the KL eval and online pairs need the reference on NEW sequences: the SFT model is
   loaded from disk for that moment (LoRA: the policy with its adapters off, no copy).
@@ -53,7 +62,7 @@ import torch
 
 from posttrain import evaluation, loop, models, preferences, scoring, tasks
 from posttrain.config import ConfigError, Resolved
-from posttrain.losses import dpo_loss, orpo_loss, simpo_loss
+from posttrain.losses import dpo_loss, kto_loss, orpo_loss, simpo_loss
 from posttrain.preferences import TokenizedPair, by_side, collate_pairs, pair_groups, pair_logps, reference_logps  # noqa: F401
 
 
@@ -65,9 +74,14 @@ class DPOConfig:
     """Held-out preference file; empty: the prefs stage's eval pairs (or 5% of train_file)."""
     beta: float = 0.1
     """KL strength: implicit reward = beta * (log pi - log pi_ref)."""
-    loss_type: Literal["sigmoid", "ipo", "hinge", "simpo", "orpo"] = "sigmoid"
+    loss_type: Literal["sigmoid", "ipo", "hinge", "simpo", "orpo", "kto"] = "sigmoid"
     """sigmoid: DPO; ipo: IPO on length-averaged log-probs; hinge: SLiC-HF calibration loss; simpo: SimPO and orpo:
-    ORPO (both reference-free: beta is SimPO's beta, paper 2-10, and ORPO's lambda, paper 0.1-0.2)."""
+    ORPO (both reference-free: beta is SimPO's beta, paper 2-10, and ORPO's lambda, paper 0.1-0.2); kto: KTO on
+    unpaired labelled completions (pairs are unpaired)."""
+    desirable_weight: float = 1.0
+    """KTO's lambda_D, the weight of desirable rows (the paper keeps lambda_D n_D / (lambda_U n_U) in [1, 4/3])."""
+    undesirable_weight: float = 1.0
+    """KTO's lambda_U, the weight of undesirable rows."""
     simpo_gamma: float = 0.5
     """SimPO's target reward margin gamma (>= 0; the paper tunes 0.3-1.6)."""
     label_smoothing: float = 0.0
@@ -142,11 +156,17 @@ REFERENCE_FREE = ("simpo", "orpo")
 
 
 def pair_loss(cfg: DPOConfig, policy_logps: torch.Tensor, policy_tokens: torch.Tensor,
-              ref: dict[str, torch.Tensor] | None) -> tuple[torch.Tensor, dict[str, float]]:
+              ref: dict[str, torch.Tensor] | None, labels: torch.Tensor | None = None
+              ) -> tuple[torch.Tensor, dict[str, float]]:
     """The preference loss of one micro-batch: policy (2B,) sums + token counts, reference {chosen, rejected,
-    *_tokens} (B,) (None for the reference-free losses)."""
+    *_tokens} (B,) (None for the reference-free losses). KTO: "chosen" is each row's completion, "rejected" its KL
+    partner, and `labels` (B,) bool says which rows are desirable."""
     B = policy_logps.shape[0] // 2
     pc, pr = policy_logps[:B], policy_logps[B:]  # (B,), (B,)
+    if cfg.loss_type == "kto":  # detail 12
+        rc, rr = ref["chosen"].to(pc.device), ref["rejected"].to(pc.device)  # (B,), (B,)
+        return kto_loss(pc, rc, labels.to(pc.device), pr, rr, beta=cfg.beta, desirable_weight=cfg.desirable_weight,
+                        undesirable_weight=cfg.undesirable_weight)
     if cfg.loss_type == "simpo":  # detail 10
         loss, metrics = simpo_loss(pc, pr, policy_tokens[:B], policy_tokens[B:], beta=cfg.beta, gamma=cfg.simpo_gamma)
     elif cfg.loss_type == "orpo":  # detail 11
@@ -172,6 +192,7 @@ class Pool:
     ref: dict[str, torch.Tensor] | None
     start: int = 0  # the step it was built at: its batches are loop.batch_indices(..., seed + gen, step - start)
     gen: int = 0  # the regeneration index; 0: the offline pairs
+    labels: list[bool] | None = None  # KTO: per row, desirable or not (its pairs are (completion, KL partner))
 
 
 def micro_batch_loss(cfg: DPOConfig, model, ref_model, pool: Pool, idx: list[int], pad_id: int,
@@ -183,7 +204,8 @@ def micro_batch_loss(cfg: DPOConfig, model, ref_model, pool: Pool, idx: list[int
         ref = None if cfg.loss_type in REFERENCE_FREE else \
             {k: v[torch.as_tensor(idx, dtype=torch.long)] for k, v in pool.ref.items()} if pool.ref is not None \
             else by_side(*pair_logps(ref_model, batch), len(idx))
-    loss, m = pair_loss(cfg, s, n, ref)
+    labels = torch.tensor([pool.labels[i] for i in idx]) if pool.labels is not None else None
+    loss, m = pair_loss(cfg, s, n, ref, labels)
     return loss * (len(idx) / batch_pairs), m
 
 
@@ -196,13 +218,16 @@ class PairData:
     source: str
     gold_rows: list[dict]  # held-out prompts with task meta (gold / proxy / KL eval); [] without a gold preference
     online_rows: list[dict]  # the training prompts of online DPO
+    train_labels: list[bool] | None = None  # KTO: the rows' labels (train / heldout are (completion, KL partner))
+    heldout_labels: list[bool] | None = None
 
 
 def load_pairs(res: Resolved, ensure, cfg: DPOConfig) -> tuple[PairData, Path, Any]:
     """(data, SFT model dir, tokenizer). on_bad_rows=error: a bad row stops before SFT may have to run."""
     train_rows, eval_rows, source, eval_source = preferences.training_pairs(ensure, cfg.train_file, cfg.eval_file,
                                                                            seed=cfg.seed)
-    if cfg.on_bad_rows == "error":  # fail fast on what needs no tokenizer
+    kto = cfg.loss_type == "kto"
+    if cfg.on_bad_rows == "error" and not kto:  # fail fast on what needs no tokenizer
         preferences.check_pairs(train_rows, source, "error")
         preferences.check_pairs(eval_rows[: cfg.eval_pairs], eval_source, "error")
     has_gold = tasks.has_gold_preference(tasks.get_task(res.task.name))
@@ -213,17 +238,23 @@ def load_pairs(res: Resolved, ensure, cfg: DPOConfig) -> tuple[PairData, Path, A
     online_rows = tasks.load_split(res.task, "train") if cfg.online else []
     sft_dir = ensure("sft")
     tokenizer = models.load_tokenizer(sft_dir, res.model)
-    checked = []
+    checked, labels = [], []
     for rows, src, what in ((train_rows, source, ""), (eval_rows[: cfg.eval_pairs], eval_source, "held-out pairs: ")):
-        _, pairs, bad = preferences.check_pairs(rows, src, cfg.on_bad_rows, tokenizer, res.model.max_length)
+        if kto:  # detail 12: unpaired rows, each with its KL partner (a few held-out rows: their pairs, unpaired)
+            pairs, lab, bad = preferences.check_unpaired(rows, src, cfg.on_bad_rows, tokenizer, res.model.max_length) \
+                if rows else ([], [], preferences.BadRows(src))
+            labels.append(lab)
+        else:
+            _, pairs, bad = preferences.check_pairs(rows, src, cfg.on_bad_rows, tokenizer, res.model.max_length)
         if bad.count:
             print(f"[dpo] {what}{bad.summary()}")  # on every process
         checked.append(pairs)
     if len(checked[0]) < cfg.batch_size:
-        raise loop.TrainingError(f"only {len(checked[0])} usable preference pairs in {source}, fewer than "
-                                 f"batch_size={cfg.batch_size}")
+        raise loop.TrainingError(f"only {len(checked[0])} usable preference {'rows' if kto else 'pairs'} in {source}, "
+                                 f"fewer than batch_size={cfg.batch_size}")
     gold_rows = gold_rows[: max(cfg.eval_rows, cfg.final_eval_rows)]
-    return PairData(checked[0], checked[1], source, gold_rows, online_rows), sft_dir, tokenizer
+    return PairData(checked[0], checked[1], source, gold_rows, online_rows, *(labels or [None, None])), sft_dir, \
+        tokenizer
 
 
 def resolve_proxy_rm(res: Resolved, ensure, spec: str, need: bool) -> Path | None:
@@ -301,7 +332,7 @@ def micro_groups(cfg: DPOConfig, pool: Pool, idx: list[int], budget: int) -> lis
 def evaluate(step: int, cfg: DPOConfig, task_name: str, model, policy, tokenizer, data: PairData, ref: Reference,
              baseline: list[str], proxy, budget: int, metrics: loop.MetricsLog, say) -> None:
     """Held-out pair metrics (every process); with the SFT `baseline` (main process), `evaluation.policy_eval`."""
-    heldout, sums = Pool(data.heldout, ref.heldout), {}
+    heldout, sums = Pool(data.heldout, ref.heldout, labels=data.heldout_labels), {}
     if heldout.pairs:
         model.eval()
     with torch.no_grad():
@@ -332,6 +363,12 @@ def train(res: Resolved, ensure) -> Path:
         raise ConfigError("dpo.beta must be > 0 and dpo.label_smoothing in [0, 0.5]")
     if cfg.simpo_gamma < 0:
         raise ConfigError(f"dpo.simpo_gamma must be >= 0, got {cfg.simpo_gamma}")
+    if cfg.loss_type == "kto" and (cfg.online or cfg.chosen_nll_weight):
+        raise ConfigError("dpo.loss_type=kto trains on fixed labelled completions: online=true and chosen_nll_weight "
+                          "(RPO) are not supported with it")
+    if cfg.desirable_weight < 0 or cfg.undesirable_weight < 0:
+        raise ConfigError(f"dpo.desirable_weight and dpo.undesirable_weight must be >= 0, got {cfg.desirable_weight}, "
+                          f"{cfg.undesirable_weight}")
     run_dir = res.stage_dir()
     data, sft_dir, tokenizer = load_pairs(res, ensure, cfg)  # a bad row stops the run before the run dir changes
     rm_dir = resolve_proxy_rm(res, ensure, cfg.proxy_rm, cfg.online and cfg.online_labeler == "rm")
@@ -361,12 +398,13 @@ def train(res: Resolved, ensure) -> Path:
     metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, main, res.run.quiet, prefix="[dpo] ")
     state = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="dpo")
     start, saved = state["step"], state["extra"].get("online_pool")  # an online pool (the offline one: rebuilt)
-    pool = Pool(**{**saved, "pairs": [TokenizedPair(**p) for p in saved["pairs"]]}) if saved else Pool(data.train,
-                                                                                                       ref_train)
+    pool = Pool(**{**saved, "pairs": [TokenizedPair(**p) for p in saved["pairs"]]}) if saved else \
+        Pool(data.train, ref_train, labels=data.train_labels)
     policy = accelerator.unwrap_model(model)  # the model inside the DDP / FSDP wrapper: generation, saving
     if start == 0 and cfg.eval_every:
         evaluate(0, cfg, res.task.name, model, policy, tokenizer, data, ref, baseline, proxy, budget, metrics, say)
-    say(f"[dpo] {len(data.train)} training pairs from {data.source}, batch {cfg.batch_size} (micro {micro} pairs, "
+    what = "rows (each with its KL partner)" if cfg.loss_type == "kto" else "pairs"
+    say(f"[dpo] {len(data.train)} training {what} from {data.source}, batch {cfg.batch_size} (micro {micro} pairs, "
         f"<= {budget} tokens), "
         f"{cfg.max_steps} steps, {cfg.loss_type} loss, beta {cfg.beta}, lr {cfg.lr}, "
         + ("no reference (a reference-free loss)" if cfg.loss_type in REFERENCE_FREE else f"reference {cfg.reference}")

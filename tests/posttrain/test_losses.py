@@ -587,3 +587,92 @@ def test_untruncated_importance_weights_correct_the_expectation_exactly():
     capped, _, _ = losses.rollout_correction(p.log()[None], q.log()[None], torch.ones(1, 4, dtype=torch.bool),
                                              kind="tis", cap=1.5)
     assert float(capped.max()) == 1.5  # truncation trades this exactness for bounded variance
+
+
+# ----------------------------------------------------------------------------- KTO
+def test_kto_hand_computed_and_gradient():
+    # r = policy - reference = [1, -1, 0]; z0 = mean([-4 - -5, -6 - -6]) = 0.5; beta 0.5, w_D 1, w_U 2:
+    # rows 1 - s(0.25), 2 (1 - s(0.75)), 1 - s(-0.25); the first and last sum to 1
+    pol = torch.tensor([-2.0, -5.0, -3.0], requires_grad=True)
+    ref = torch.tensor([-3.0, -4.0, -3.0])
+    des = torch.tensor([True, False, True])
+    kl_pol = torch.tensor([-4.0, -6.0], requires_grad=True)
+    loss, m = losses.kto_loss(pol, ref, des, kl_pol, torch.tensor([-5.0, -6.0]), beta=0.5, desirable_weight=1.0,
+                              undesirable_weight=2.0)
+    assert loss.item() == pytest.approx((1 + 2 * (1 - _sig(0.75))) / 3)
+    assert loss.item() == pytest.approx(0.5472140, abs=1e-6)
+    assert m["kl"] == pytest.approx(0.5) and m["rewards/chosen"] == pytest.approx(0.25)
+    assert m["rewards/rejected"] == pytest.approx(-0.5) and m["rewards/margin"] == pytest.approx(0.75)
+    assert m["rewards/accuracy"] == pytest.approx(2 / 3)
+    assert m["logps/chosen"] == pytest.approx(-2.5) and m["logps/rejected"] == pytest.approx(-5.0)
+    loss.backward()
+
+    def ds(x):  # sigmoid'(x)
+        return _sig(x) * (1 - _sig(x))
+    torch.testing.assert_close(pol.grad, torch.tensor([-0.5 * ds(0.25) / 3, 2 * 0.5 * ds(0.75) / 3,
+                                                       -0.5 * ds(-0.25) / 3]))
+    assert kl_pol.grad is None  # the reference point is a constant (detached)
+
+
+def test_kto_reference_point_is_clamped_at_zero_and_one_class_batches():
+    pol, ref = torch.tensor([-1.0, -2.0]), torch.tensor([-1.0, -2.0])
+    # the mismatched completions are likelier under the reference: the KL estimate is negative, z0 = 0
+    loss, m = losses.kto_loss(pol, ref, torch.tensor([True, True]), torch.tensor([-9.0]), torch.tensor([-3.0]),
+                              beta=0.1)
+    assert m["kl"] == 0.0 and loss.item() == pytest.approx(0.5)  # r = z0 = 0: 1 - sigmoid(0)
+    assert math.isnan(m["rewards/rejected"]) and m["rewards/chosen"] == 0.0
+    with pytest.raises(ValueError, match="beta"):
+        losses.kto_loss(pol, ref, torch.tensor([True, False]), pol, ref, beta=0.0)
+
+
+# ----------------------------------------------------------------------------- distillation
+def test_token_divergence_hand_computed():
+    # vocabulary of 2: student logits (0, 0) -> S = (1/2, 1/2); teacher (log 3, 0) -> P = (3/4, 1/4)
+    s = torch.tensor([[[0.0, 0.0]]])
+    t = torch.tensor([[[math.log(3.0), 0.0]]])
+    mask = torch.ones(1, 1)
+    rev = losses.token_divergence(s, t, mask, kind="reverse_kl")
+    assert rev.item() == pytest.approx(0.5 * math.log(4 / 3))  # 0.5 ln(0.5/0.75) + 0.5 ln(0.5/0.25)
+    fwd = losses.token_divergence(s, t, mask, kind="forward_kl")
+    assert fwd.item() == pytest.approx(0.75 * math.log(1.5) - 0.25 * math.log(2))
+    # beta 1/2: M = (5/8, 3/8); KL(P||M) = 0.75 ln 1.2 + 0.25 ln(2/3), KL(S||M) = 0.5 ln 0.8 + 0.5 ln(4/3)
+    jsd = losses.token_divergence(s, t, mask, kind="jsd", beta=0.5)
+    want = 0.5 * (0.75 * math.log(1.2) + 0.25 * math.log(2 / 3)) + 0.5 * (0.5 * math.log(0.8) + 0.5 * math.log(4 / 3))
+    assert jsd.item() == pytest.approx(want) and jsd.item() == pytest.approx(0.0338217, abs=1e-6)
+    # GKD's limits: JSD(beta) / beta -> forward KL as beta -> 0, JSD / (1 - beta) -> reverse KL as beta -> 1
+    eps = 1e-4
+    assert losses.token_divergence(s, t, mask, kind="jsd", beta=eps).item() / eps == pytest.approx(fwd.item(), rel=1e-3)
+    assert losses.token_divergence(s, t, mask, kind="jsd", beta=1 - eps).item() / eps == \
+        pytest.approx(rev.item(), rel=1e-3)
+
+
+def test_token_divergence_gradients_by_hand_and_masking():
+    s = torch.tensor([[[0.0, 0.0], [float("nan"), 1.0]]], requires_grad=True)  # the second position is masked
+    t = torch.tensor([[[math.log(3.0), 0.0], [0.0, float("inf")]]])
+    mask = torch.tensor([[1.0, 0.0]])
+    rev = losses.token_divergence(s, t, mask, kind="reverse_kl")
+    assert rev[0, 1].item() == 0.0 and torch.isfinite(rev).all()
+    rev.sum().backward()
+    # d KL(S||P) / d z_i = S_i (log S_i - log P_i - KL)
+    kl = 0.5 * math.log(4 / 3)
+    torch.testing.assert_close(s.grad[0, 0], torch.tensor([0.5 * (math.log(2 / 3) - kl), 0.5 * (math.log(2) - kl)]))
+    assert s.grad[0, 1].eq(0).all()  # nothing reaches a masked position, NaN included
+    s.grad = None
+    losses.token_divergence(s, t, mask, kind="forward_kl").sum().backward()
+    torch.testing.assert_close(s.grad[0, 0], torch.tensor([0.5 - 0.75, 0.5 - 0.25]))  # d KL(P||S) / d z = S - P
+
+
+def test_token_divergence_is_zero_for_equal_distributions_and_checks_its_inputs():
+    g = torch.Generator().manual_seed(0)
+    z = torch.randn(2, 3, 7, generator=g)
+    mask = torch.ones(2, 3)
+    for kind in ("reverse_kl", "forward_kl", "jsd"):
+        assert losses.token_divergence(z, z + 5.0, mask, kind=kind).abs().max().item() < 1e-6  # a shift is no change
+        d = losses.token_divergence(z, torch.randn(2, 3, 7, generator=g), mask, kind=kind)
+        assert (d > 0).all()
+    with pytest.raises(ValueError, match="beta"):
+        losses.token_divergence(z, z, mask, kind="jsd", beta=1.0)
+    with pytest.raises(ValueError, match="kind"):
+        losses.token_divergence(z, z, mask, kind="tv")
+    with pytest.raises(ValueError, match="agree"):
+        losses.token_divergence(z, z[..., :5], mask)

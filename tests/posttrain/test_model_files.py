@@ -106,3 +106,15 @@ def test_model_path_gguf_is_imported_once_beside_the_run_and_again_when_the_file
     assert ensure_base(res) == want and ensure_base(res) == want and len(calls) == 1
     src.write_bytes(b"GGUF two, a different file")
     assert ensure_base(res) == want and len(calls) == 2
+
+
+def test_a_disk_without_room_for_the_import_is_named_before_writing(tmp_path, monkeypatch):
+    import shutil
+    from collections import namedtuple
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10 * 2**30, 10 * 2**30 - 300 * 2**20, 300 * 2**20))
+    with pytest.raises(ModelError, match=r"not enough disk space to import m.gguf \(the dequantized fp32 model and "
+                                         r"its tokenizer\): it takes 538 MiB and .* has 300 MiB free"):
+        model_files.need_disk(538 * 2**20, tmp_path, "import m.gguf (the dequantized fp32 model and its tokenizer)")
+    model_files.need_disk(200 * 2**20, tmp_path, "anything")  # room enough: no error

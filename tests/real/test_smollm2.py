@@ -13,6 +13,7 @@ Run it alone: `python -m pytest -m real` (~4 min on 2 cores after the one-off fe
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -35,6 +36,13 @@ def _write(path: Path, rows: list[dict]) -> Path:
 
 def _metrics(run: Path) -> list[dict]:
     return [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def _drop_checkpoints(root: Path) -> None:
+    """At real size a checkpoint is the weights plus two Adam moments (1.6 GB per model): the tests read only
+    metrics and final/, so every checkpoint under `root` goes as soon as its run ends (a CI disk stays free)."""
+    for ckpt in Path(root).rglob("checkpoints"):
+        shutil.rmtree(ckpt, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")
@@ -115,11 +123,14 @@ def chain(smol, tmp_path_factory):
     assert main(["sft", "--recipe", "tiny-summarize", *common, "max_steps=8", "batch_size=4", "lr=5e-5",
                  "warmup_steps=0", "log_every=1", "eval_every=0", "final_eval_rows=4", "max_new_tokens=32",
                  "save_every=0"]) == 0
+    _drop_checkpoints(out)
     assert main(["prefs", "--recipe", "tiny-summarize", *common, "n_prompts=8", "n_eval_prompts=4",
                  "samples_per_prompt=4", "max_new_tokens=32"]) == 0
     assert main(["rm", "--recipe", "tiny-summarize", *common, "max_steps=4", "batch_size=4", "warmup_steps=0",
                  "log_every=1", "eval_every=0"]) == 0
-    return {"out": out, "common": common, "run": out / "tiny-summarize"}
+    _drop_checkpoints(out)
+    yield {"out": out, "common": common, "run": out / "tiny-summarize"}
+    shutil.rmtree(out, ignore_errors=True)  # ~2 GB of models: gone with the module
 
 
 @pytest.mark.learning
@@ -161,7 +172,9 @@ def test_dpo_overfits_its_pairs(chain, learning):
                  "online=false", "proxy_rm=none", "max_steps=6", "batch_size=4", "lr=1e-5", "warmup_steps=0",
                  "log_every=1", "eval_every=6", "eval_rows=8", "final_eval_rows=4", "max_new_tokens=32",
                  *learning.overrides]) == 0
+    _drop_checkpoints(chain["run"] / "dpo")
     m = _metrics(chain["run"] / "dpo")
+    shutil.rmtree(chain["run"] / "dpo" / "final")  # read nothing more: room for the next stage
     loss = [r["eval/loss"] for r in m if "eval/loss" in r]
     assert loss[0] == pytest.approx(0.6931, abs=1e-3)  # policy == reference at step 0
     learning.above("DPO loss on its pairs, step 0 - step 6", loss[0] - loss[-1], 0.05, loss)
@@ -171,9 +184,11 @@ def test_ppo_with_the_value_model_from_the_reward_model(chain):
     assert main(["ppo", "--recipe", "tiny-summarize", *chain["common"], "max_steps=2", "rollout_batch_size=4",
                  "minibatch_size=2", "ppo_epochs=1", "max_new_tokens=24", "eval_every=0", "eval_rows=4",
                  "final_eval_rows=4", "save_every=0", "reward_norm_prompts=8"]) == 0  # 8, not 128, SFT samples
+    _drop_checkpoints(chain["run"] / "ppo")
     m = [r for r in _metrics(chain["run"] / "ppo") if "rollout/score" in r]
     assert len(m) == 2 and all(r["rollout/logprob_gap"] < 1e-3 for r in m)  # recomputed old log-probs == engine's
     assert (chain["run"] / "ppo" / "final" / "model.safetensors").is_file()
+    shutil.rmtree(chain["run"] / "ppo")
 
 
 @pytest.mark.learning
@@ -187,6 +202,7 @@ def test_grpo_raises_an_easy_reward_on_the_real_model(smol, tmp_path, learning):
                  "model.max_length=160", "prompts_per_step=2", "group_size=8", "max_new_tokens=24", "max_steps=6",
                  "lr=2e-5", "beta=0", "eval_every=0", "eval_rows=0", "final_eval_rows=0", "save_every=0",
                  *learning.overrides]) == 0
+    _drop_checkpoints(out)
     r = [x["reward/mean"] for x in _metrics(out / "tiny-math" / "grpo") if "reward/mean" in x]
     learning.above("digit fraction, last 2 - first 2 steps", sum(r[-2:]) / 2 - sum(r[:2]) / 2, 0.05, r)
 
@@ -199,6 +215,7 @@ def test_the_smol_math_recipe_runs_end_to_end(smol, tmp_path, capsys):
                  THREADS, "prompts_per_step=2", "group_size=4", "max_new_tokens=24", "max_steps=2", "eval_every=0",
                  "eval_rows=4", "final_eval_rows=4", "save_every=0", "task.n_train=16",
                  "zero_variance=keep"]) == 0  # keep: every step trains, so every step measures mismatch/kl
+    _drop_checkpoints(out)
     steps = [x for x in _metrics(out / "smol-math" / "grpo") if "reward/mean" in x]
     assert len(steps) == 2 and all(0 <= s["mismatch/kl"] < 0.1 for s in steps)
     assert "held-out greedy accuracy on 4 problems: base" in capsys.readouterr().out

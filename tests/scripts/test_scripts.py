@@ -228,16 +228,17 @@ def test_e6_report_and_plots_of_every_arm(tmp_path):
     text = e6.report_md(res, an, figs)
     headline = text.split("## Final policies")[1].split("\n## ")[0]
     rows = [line.split("|")[1].strip().strip("`") for line in headline.splitlines() if line.startswith("| `")]
-    assert rows == ["dpo-offline", "ppo-rm", "simpo-offline", "orpo-offline", "dpo-online-gold", "ppo-gold"]
+    assert rows == ["dpo-offline", "ppo-rm", "simpo-offline", "orpo-offline", "kto-offline", "dpo-online-gold",
+                    "ppo-gold"]
     groups = [line.split("|")[2].strip() for line in headline.splitlines() if line.startswith("| `")]
-    assert groups == ["like with like"] * 4 + ["oracle"] * 2
+    assert groups == ["like with like"] * 5 + ["oracle"] * 2
     claim = text.split("## Does the seed's claim hold here?")[1].split("\n## ")[0]
     assert "`dpo-offline` vs `ppo-rm`" in claim and "**DPO is more stable:" in claim and "give-back" in claim
     assert "dpo-online-gold" not in claim.split("Other preference losses")[0]
-    assert "`simpo-offline`" in claim and "`orpo-offline`" in claim
+    assert "`simpo-offline`" in claim and "`orpo-offline`" in claim and "`kto-offline`" in claim
     oracle = text.split("## Oracle arms")[1].split("\n## ")[0]
     assert "`dpo-online-gold`" in oracle and "`ppo-gold`" in oracle and "not the seed's setting" in oracle
-    assert "KTO" in text and "not implemented" in text and "max drawdown from the running best" in text
+    assert "KTO beta 0.1" in text and "not implemented" not in text and "max drawdown from the running best" in text
     assert "after step 0" in text and "minus the final one" in text and "worst fall" in text
     assert "| `simpo-offline` | dpo |" in text.split("## Simplicity")[1]
 
@@ -257,7 +258,7 @@ def test_e6_arms_option(capsys):
     assert e6.parse_args([]).arms == list(e6.ARMS)
     assert e6.parse_args(["--arms", "ppo-rm,dpo-offline", "ppo-rm"]).arms == ["dpo-offline", "ppo-rm"]
     with pytest.raises(SystemExit) as e:
-        e6.parse_args(["--arms", "dpo-offline", "kto-offline"])
+        e6.parse_args(["--arms", "dpo-offline", "ipo-offline"])
     assert e.value.code == 2
     err = capsys.readouterr().err
-    assert "unknown arm 'kto-offline'" in err and "choose from: dpo-offline, ppo-rm" in err
+    assert "unknown arm 'ipo-offline'" in err and "choose from: dpo-offline, ppo-rm" in err

@@ -1,0 +1,460 @@
+"""On-policy distillation: the student samples, a teacher scores every token of the student's samples, and the
+student minimises the per-token divergence between its next-token distribution and the teacher's.
+
+CPU:        posttrain distill --recipe tiny-math      (from nothing: the teacher and the student's SFT model are
+                                                        built first when missing; see the recipe's distill section)
+Multi-GPU:  accelerate launch --num_processes 8 -m posttrain distill --recipe tiny-math teacher=/path/to/teacher
+            (2 CPU processes: accelerate launch --config_file recipes/launch/cpu-2proc.yaml -m posttrain distill
+            --recipe tiny-math run.threads=1)
+
+Reads top to bottom: check the prompts (and the verifier, when there is one), load the student (the SFT model) and
+the teacher (frozen), check that they share one tokenizer, score the teacher's and the student's greedy answers
+on held-out problems, then loop { rollout: P prompts x K samples from the student (or, with probability
+1 - student_fraction, from the teacher) -> score (verifier metrics; the reward term) -> one optimizer step on the
+per-token divergence (and the reward term) -> log -> eval -> checkpoint }; save final/ and compare held-out
+greedy accuracy with the student's SFT model and with the teacher.
+
+Implementation details it follows, each a config field:
+ 1. On-policy data (GKD: Agarwal et al. 2024, "On-Policy Distillation of Language Models: Learning from
+    Self-Generated Mistakes", §3): the student's own samples at `temperature`, so it is taught in the states
+    it reaches itself, not the teacher's (the train-test mismatch of supervised KD). student_fraction is GKD's
+    lambda: each step's samples come from the student with that probability, else from the teacher (seeded
+    by step; 0 is supervised KD on the teacher's samples).
+ 2. The per-token divergence over the whole vocabulary (`losses.token_divergence`, loss): reverse KL
+    KL(student || teacher) (the default: mode-seeking, the loss of on-policy distillation in GKD, MiniLLM (Gu
+    et al. 2024) and Thinking Machines' "On-Policy Distillation", 2025), forward KL, or GKD's generalised JSD
+    (jsd_beta). loss=nll is the negative log-likelihood of the sampled tokens: with student_fraction=0 that is
+    SFT of the student on the teacher's samples (sequence-level KD, Kim & Rush 2016), the baseline of the
+    distillation-vs-SFT comparison at the same prompts, samples and steps.
+ 3. One token mean over the step's completion tokens (every process's), one optimizer step per batch of
+    samples: on-policy, so no importance ratio and no clipping (GKD; TRL's GKDTrainer).
+ 4. Both distributions at the same temperature: logits / temperature for the student and the teacher when
+    temperature != 1 (the student samples from its tempered distribution, so that is the one taught).
+ 5. An optional verifier reward (reward_weight > 0): reward_weight x a policy-gradient term with group
+    advantages (GRPO's group baseline, `advantages.group_advantages`; K = group_size >= 2 samples per prompt)
+    on the student's own samples, added to the divergence (GKD §3.2, "RL fine-tuning with on-policy GKD";
+    Qwen3's and Thinking Machines' distillation mix it the same way). Steps whose samples are the teacher's
+    carry no reward term (they are not the student's policy).
+ 6. Teacher and student share one tokenizer, checked before training (vocabulary, special tokens): the
+    divergence compares distributions id by id. Their sizes may differ. A teacher whose output layer has more
+    rows than the tokenizer (padded vocabularies) is compared on the tokenizer's ids only.
+ 7. The teacher is frozen (no grad, eval mode) and runs on each micro-batch inside the loss, so neither its
+    logits nor the student's exist for the whole batch at once: micro-batches are sized by a token budget that
+    counts both models' logits (run.micro_batch_tokens overrides it).
+
+Teacher: distill.teacher names a stage of this recipe (sft, grpo, ...: its final/, trained first when missing)
+or a model directory / .gguf file. distill.teacher_model (a preset such as small, or a model directory) runs
+that stage's chain with another model, in its own run tree <run.output_dir>/model-<name>/<recipe>/ (the same
+task, so the same tokenizer for a preset). The student is this recipe's SFT model (model.start_from=base: the
+model as it is).
+
+Several processes: `posttrain.sharding`'s convention, as GRPO: process r samples positions r, r + W, ... of each
+step's global prompt batch, the groups are gathered (every process holds every row), and the step's rows are
+split over the processes by `sharding.micro_batches`. Evaluation, logs and final/ are the main process's.
+
+Deviations and limits:
+- The divergence is summed per token over the student's sampled prefixes, as in GKD: its gradient treats each
+  position's distribution as the target and ignores that the student's choice of earlier tokens changed which
+  prefixes it will be scored on (the sequence-level reverse KL's score-function term; MiniLLM keeps it with a
+  policy gradient). Thinking Machines' sampled-token estimator (log S - log P of the sampled token as a
+  per-token reward) is not offered: with a shared tokenizer the exact per-token divergence is cheap here.
+- Full-vocabulary divergences hold both models' logits for a micro-batch: on a 150k vocabulary that limits
+  micro-batches to a few hundred tokens (the budget does this; a top-k teacher is not implemented).
+- The teacher runs in fp32 on every process (no sharding of the teacher; no separate teacher server).
+"""
+from __future__ import annotations
+
+import collections
+import functools
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+
+from posttrain import loop, sharding
+from posttrain.advantages import group_advantages, zero_variance_groups
+from posttrain.config import ConfigError, Resolved
+from posttrain.logprobs import completion_logits, masked_mean
+from posttrain.losses import policy_loss, token_divergence
+from posttrain.problems import (Group, HeldOut, Problem, build_reward, build_verifier, check_problems, gather_groups,
+                                preflight, score_groups, split_rows, tokenize_problems)
+
+
+@dataclass
+class DistillConfig:
+    teacher: str = "grpo"
+    """The teacher: a stage of this recipe (sft, grpo, ...: its final/, trained first when missing) or a model
+    directory / .gguf file; it must share the student's tokenizer."""
+    teacher_model: str = ""
+    """Run the teacher's stage with this model instead of model.path (a preset such as small, or a model
+    directory), in <run.output_dir>/model-<name>/; empty: the recipe's own model."""
+    loss: Literal["reverse_kl", "forward_kl", "jsd", "nll"] = "reverse_kl"
+    """Per-token loss: reverse_kl (KL(student || teacher), on-policy distillation), forward_kl, jsd (GKD's
+    generalised JSD, jsd_beta), nll (the sampled tokens' NLL: with student_fraction=0, SFT on teacher samples)."""
+    jsd_beta: float = 0.5
+    """beta of loss=jsd, in (0, 1): near 0 it is forward-KL-like, near 1 reverse-KL-like."""
+    student_fraction: float = 1.0
+    """GKD's lambda: the probability that a step's samples are the student's (else the teacher's); 1: on-policy."""
+    reward_weight: float = 0.0
+    """Weight of a policy-gradient term on the verifier reward (group advantages; needs group_size >= 2)."""
+    verifier: str = "auto"
+    """Verifier spec for the reward term and the held-out accuracy; auto: the task's; none: no verifier."""
+    verifier_options: dict[str, Any] = field(default_factory=dict)
+    """Keyword options of a single (not composed) verifier."""
+    verifier_workers: int = 2
+    """Verifier worker processes; 0 scores in-process."""
+    verifier_timeout_s: float = 0.0
+    """Wall-clock limit per check in seconds; 0: the verifier's own limit."""
+    on_bad_rows: Literal["error", "skip"] = "error"
+    """Problems without a reference (when a verifier is used): stop naming the row, or skip them."""
+    train_file: str | None = None
+    """Prompt file (JSONL/JSON/Parquet rows: prompt[, answer, verifier]) replacing the task's training prompts."""
+    eval_file: str | None = None
+    """Held-out prompt file (same schema) replacing the task's held-out prompts."""
+    prompts_per_step: int = 16
+    """Prompts per step (P)."""
+    group_size: int = 1
+    """Samples per prompt (K); the reward term's group baseline needs K >= 2."""
+    max_new_tokens: int = 64
+    """Generation budget per sample."""
+    temperature: float = 1.0
+    """Sampling temperature (> 0); both models' logits are divided by it in the loss."""
+    lr: float = 5e-5
+    """Peak learning rate (AdamW)."""
+    weight_decay: float = 0.0
+    """AdamW weight decay (not applied to norms and embeddings)."""
+    warmup_steps: int = 0
+    """Linear warmup steps."""
+    schedule: Literal["cosine", "linear", "constant"] = "constant"
+    """Learning-rate schedule after warmup."""
+    min_lr_ratio: float = 0.0
+    """Final learning rate as a fraction of the peak (cosine / linear)."""
+    max_grad_norm: float = 1.0
+    """Gradient clipping norm (0 disables)."""
+    micro_batch_size: int = 0
+    """Rows per forward pass at most; 0: no row cap (the token budget still applies)."""
+    max_steps: int = 100
+    """Steps; each is one batch of samples and one optimizer step."""
+    log_every: int = 1
+    """Steps between console lines (metrics.jsonl gets every step)."""
+    eval_every: int = 20
+    """Steps between held-out greedy evaluations; 0: only before and after training."""
+    eval_rows: int = 100
+    """Held-out problems for the periodic evaluation."""
+    final_eval_rows: int = 200
+    """Held-out problems for the before / after / teacher comparison (0 skips it)."""
+    save_every: int = 50
+    """Steps between checkpoints (0: only at the end)."""
+    keep_checkpoints: int = 2
+    """Checkpoints kept on disk (oldest deleted first)."""
+    seed: int = 0
+    """Seed of prompt order, sampling and the student / teacher draw."""
+    resume: bool = False
+    """Continue from the newest checkpoint in the run directory."""
+
+
+def check_config(cfg: DistillConfig) -> None:
+    """Inconsistent settings are a ConfigError before anything runs."""
+    def bad(msg: str) -> ConfigError:
+        return ConfigError(f"distill.{msg}")
+
+    if not cfg.teacher:
+        raise bad("teacher is empty; give a stage of this recipe (e.g. grpo) or a model directory")
+    if cfg.prompts_per_step < 1 or cfg.group_size < 1 or cfg.max_new_tokens < 1 or cfg.micro_batch_size < 0:
+        raise bad("prompts_per_step, group_size and max_new_tokens must be >= 1 and micro_batch_size >= 0")
+    if not 0 < cfg.jsd_beta < 1:
+        raise bad(f"jsd_beta must be in (0, 1), got {cfg.jsd_beta}")
+    if not 0 <= cfg.student_fraction <= 1:
+        raise bad(f"student_fraction must be in [0, 1], got {cfg.student_fraction}")
+    if not cfg.temperature > 0:
+        raise bad(f"temperature must be > 0, got {cfg.temperature}")
+    if cfg.reward_weight < 0:
+        raise bad(f"reward_weight must be >= 0, got {cfg.reward_weight}")
+    if cfg.reward_weight > 0 and cfg.group_size < 2:
+        raise bad(f"reward_weight > 0 needs group_size >= 2 (the group baseline of its advantages), got "
+                  f"{cfg.group_size}")
+    if cfg.reward_weight > 0 and cfg.verifier == "none":
+        raise bad("reward_weight > 0 needs a verifier (verifier=none)")
+    if cfg.verifier_workers < 0 or cfg.verifier_timeout_s < 0:
+        raise bad("verifier_workers and verifier_timeout_s must be >= 0")
+
+
+def load_problems(res: Resolved, cfg: DistillConfig):
+    """(verifier or None, training rows, their source, training problems, held-out problems), checked before any
+    model loads. Without a verifier the prompts need no reference."""
+    from posttrain import tasks
+
+    try:
+        task = tasks.get_task(res.task.name)
+    except ValueError as e:
+        raise ConfigError(f"task.name: {e}") from None
+    train_rows, train_source = split_rows(res.task, "train", cfg.train_file)
+    eval_rows, eval_source = split_rows(res.task, "eval", cfg.eval_file)
+    eval_rows = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)]
+    verifier = build_verifier(cfg.verifier, cfg.verifier_options, task, train_rows, stage="distill")
+    if verifier is not None:
+        problems, _ = check_problems(train_rows, train_source, cfg.on_bad_rows, stage="distill")
+        eval_problems, _ = check_problems(eval_rows, eval_source, cfg.on_bad_rows, stage="distill")
+    else:
+        problems = [Problem(r["prompt"], None, i) for i, r in enumerate(train_rows)]
+        eval_problems = [Problem(r["prompt"], None, i) for i, r in enumerate(eval_rows)]
+    if len(problems) < cfg.prompts_per_step:
+        raise ConfigError(f"{train_source}: {len(problems)} usable prompts, fewer than distill.prompts_per_step="
+                          f"{cfg.prompts_per_step}")
+    return verifier, train_rows, train_source, problems, eval_problems
+
+
+def teacher_dir(res: Resolved, cfg: DistillConfig, stages: tuple[str, ...], ensure) -> Path:
+    """The teacher's model directory: a stage's output (built first when missing; with teacher_model, in that
+    model's run tree), a .gguf file dequantized once (as model.path=FILE.gguf), or the directory given."""
+    from posttrain import model_files
+    from posttrain.errors import ModelError
+    from posttrain.models import is_model_dir
+
+    if cfg.teacher in stages:
+        return ensure(cfg.teacher, cfg.teacher_model or None)
+    if cfg.teacher_model:
+        raise ConfigError(f"distill.teacher_model={cfg.teacher_model!r} names the model of a teacher STAGE, but "
+                          f"distill.teacher={cfg.teacher!r} is a path; give a stage ({', '.join(stages)}) or drop it")
+    if model_files.is_gguf(cfg.teacher):
+        return model_files.cached_import(cfg.teacher, Path(res.run.output_dir) / "models")
+    if not is_model_dir(cfg.teacher):
+        raise ModelError(f"distill.teacher {cfg.teacher!r} is neither a stage of this recipe ({', '.join(stages)}) "
+                         "nor a Hugging Face model directory")
+    return Path(cfg.teacher)
+
+
+def check_same_tokenizer(student_tok, teacher_tok, teacher_path: Path) -> None:
+    """Detail 6: one tokenizer for both (a ModelError naming the first difference otherwise)."""
+    from posttrain.errors import ModelError
+
+    a, b = student_tok.get_vocab(), teacher_tok.get_vocab()
+    if a != b:
+        differ = sorted(set(a.items()) ^ set(b.items()), key=lambda kv: kv[1])[:3]
+        raise ModelError(f"distill.teacher {str(teacher_path)!r} has another tokenizer than the student (vocabularies "
+                         f"of {len(b)} and {len(a)} tokens; e.g. {differ}): on-policy distillation compares the two "
+                         "next-token distributions id by id, so both models must share one tokenizer")
+    for name in ("eos_token_id", "pad_token_id", "bos_token_id"):
+        if getattr(student_tok, name) != getattr(teacher_tok, name):
+            raise ModelError(f"distill.teacher {str(teacher_path)!r}: its tokenizer's {name} is "
+                             f"{getattr(teacher_tok, name)}, the student's {getattr(student_tok, name)}")
+
+
+def distill_budget(setting: int, student, teacher) -> int:
+    """Detail 7: padded tokens per micro-batch whose activations (the student's, both models' full logits, their
+    softmaxes and the divergence's temporaries: ~8 vocabulary-size fp32 vectors) take ACTIVATION_BUDGET_BYTES."""
+    from posttrain.models import ACTIVATION_BUDGET_BYTES, activation_bytes_per_token, unwrap_model
+
+    if setting:
+        return int(setting)
+    cfg = unwrap_model(student).config
+    per_token = activation_bytes_per_token(cfg) + 4 * 8 * max(cfg.vocab_size, unwrap_model(teacher).config.vocab_size)
+    return max(64, ACTIVATION_BUDGET_BYTES // per_token)
+
+
+# ----------------------------------------------------------------------------- the loss
+def distill_loss(cfg: DistillConfig, model, teacher, vocab: int, with_reward: bool, world: int,
+                 micro_batch: tuple[dict, float, float]) -> tuple[torch.Tensor, dict[str, float]]:
+    """The loss of one of `sharding.micro_batches`: the token mean of the per-token loss over its completion
+    tokens (plus reward_weight x the policy-gradient term), scaled to its share of the step's tokens times W (DDP
+    averages gradients). Metrics: both KLs per token whatever the loss (comparable across runs), the NLL."""
+    mb, share, _ = micro_batch
+    ids, am = mb["input_ids"], mb["attention_mask"]
+    s_logits, c = completion_logits(model, ids, am, mb["loss_mask"], temperature=cfg.temperature)  # (b, T-c, V)
+    with torch.no_grad():
+        t_logits, _ = completion_logits(teacher, ids, am, mb["loss_mask"], temperature=cfg.temperature)
+    s_logits, t_logits = s_logits[..., :vocab], t_logits[..., :vocab]
+    mask = mb["loss_mask"][:, c:].to(s_logits.device).bool()  # (b, T-c)
+    targets = ids[:, c:].to(s_logits.device)  # (b, T-c)
+    logps = torch.log_softmax(s_logits, -1).gather(-1, targets[..., None]).squeeze(-1)  # (b, T-c)
+    nll = torch.where(mask, -logps, torch.zeros_like(logps))
+    per_token = nll if cfg.loss == "nll" else token_divergence(s_logits, t_logits, mask, kind=cfg.loss,
+                                                                beta=cfg.jsd_beta)  # (b, T-c)
+    loss = masked_mean(per_token, mask)
+    m: dict[str, float] = {}
+    with torch.no_grad():
+        sd, td = s_logits.detach(), t_logits.detach()
+        m["kl/reverse"] = float(masked_mean(token_divergence(sd, td, mask, kind="reverse_kl"), mask))
+        m["kl/forward"] = float(masked_mean(token_divergence(sd, td, mask, kind="forward_kl"), mask))
+        m["nll"] = float(masked_mean(nll.detach(), mask))
+    if with_reward:  # detail 5: on-policy, so the ratio is 1 and this is REINFORCE with the group baseline
+        pg, _ = policy_loss("clip", logps, logps.detach(), mb["advantages"].to(logps.device), mask, clip_eps=0.2,
+                            aggregation="token_mean")  # ratio 1: the clip never binds
+        loss = loss + cfg.reward_weight * pg
+        m["pg_loss"] = float(pg.detach())
+    return loss * share * world, m
+
+
+# ----------------------------------------------------------------------------- train
+def train(res: Resolved, ensure) -> Path:
+    """On-policy distillation of the teacher into the recipe's SFT model; returns the final model directory."""
+    from posttrain.config import STAGE_SECTIONS
+    from posttrain.models import load_model, load_tokenizer, maybe_lora, save_model
+    from posttrain.rollout import SamplingParams, collate_rollouts, generate
+    from verifiers.runner import VerifierPool
+
+    cfg: DistillConfig = res.stage_cfg
+    check_config(cfg)
+    K, P = cfg.group_size, cfg.prompts_per_step
+    # Prompts and the verifier first: a bad row or a broken verifier stops before any model loads.
+    verifier, train_rows, train_source, problems, eval_problems = load_problems(res, cfg)
+    with VerifierPool(workers=cfg.verifier_workers, timeout_s=cfg.verifier_timeout_s or None) as pool:
+        if verifier is not None:
+            preflight(verifier, pool, train_rows, train_source, print, stage="distill")
+        t_dir = teacher_dir(res, cfg, tuple(s for s in STAGE_SECTIONS if s not in ("eval", "distill")), ensure)
+        sft_dir = ensure("sft")
+        tokenizer = load_tokenizer(sft_dir, res.model)
+        check_same_tokenizer(tokenizer, load_tokenizer(t_dir, res.model), t_dir)  # before the run dir changes
+
+        accelerator, say = loop.start_run(res, cfg.seed, cfg.resume)
+        run_dir, main, device = res.stage_dir(), accelerator.is_main_process, accelerator.device
+        rank, world = accelerator.process_index, accelerator.num_processes
+        model = maybe_lora(res, load_model(sft_dir, res.model.dtype, device=device), say)
+        teacher = load_model(t_dir, res.model.dtype, device=device).eval().requires_grad_(False)
+        vocab = len(tokenizer)  # detail 6: padded output rows beyond the tokenizer are never compared
+        budget = distill_budget(res.run.micro_batch_tokens, model, teacher)
+        problems = tokenize_problems(tokenizer, problems, "training", cfg.max_new_tokens, res.model.max_length, say,
+                                     stage="distill")
+        eval_problems = tokenize_problems(tokenizer, eval_problems, "held-out", cfg.max_new_tokens,
+                                          res.model.max_length, say, stage="distill")
+        if len(problems) < P:
+            raise loop.TrainingError(f"only {len(problems)} training prompts fit, fewer than prompts_per_step={P}")
+        reward = build_reward(verifier, pool, None, device, timeout_s=cfg.verifier_timeout_s) \
+            if verifier is not None else None
+        held = None if reward is None else HeldOut(
+            eval_problems, reward, cfg.max_new_tokens, min(cfg.eval_rows, len(eval_problems)),
+            min(cfg.final_eval_rows, len(eval_problems)), stage="distill",
+            start="base" if res.model.start_from == "base" else "SFT")
+        optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
+        scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
+        model, optimizer = accelerator.prepare(model, optimizer)
+        student = accelerator.unwrap_model(model)
+        ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
+        metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, main, res.run.quiet, prefix="[distill] ")
+        start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say,
+                                tag="distill")["step"]
+        baseline = held.sft_baseline(student, tokenizer, run_dir / "sft_eval.json", start, metrics, say) \
+            if main and held is not None else {}
+        teacher_eval = teacher_baseline(held, teacher, tokenizer, run_dir / "teacher_eval.json", say) \
+            if main and held is not None else {}
+        say(describe_run(cfg, t_dir, len(problems), verifier, world, device, budget))
+        t_start = time.time()
+        for step in range(start, cfg.max_steps):
+            done = step + 1
+            t_step = time.time()
+            saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
+            evaluating = cfg.eval_every and done % cfg.eval_every == 0
+            with loop.naming_checkpoint(ckpt):
+                # ---- rollout: the student's samples (GKD's lambda: else the teacher's), process r taking
+                # positions r, r + W, ... of the step's global prompt batch
+                on_policy = random.Random(cfg.seed * 1_000_003 + step).random() < cfg.student_fraction
+                idx = loop.batch_indices(len(problems), P, cfg.seed, step)
+                mine = sharding.positions(P, rank, world)
+                ps = [problems[idx[i]] for i in mine]
+                params = SamplingParams(n=K, max_new_tokens=cfg.max_new_tokens, temperature=cfg.temperature,
+                                        seed=cfg.seed * 1_000_003 + step * 31)
+                t0 = time.time()
+                out = generate(student if on_policy else teacher, tokenizer, [p.prompt_ids for p in ps], params,
+                               prompt_keys=[p.key for p in ps]) if ps else []
+                # ---- score (verifier metrics and the reward term), gathered: every process holds every group
+                t1 = time.time()
+                if reward is not None:
+                    groups, _ = gather_groups(reward, accelerator, mine, score_groups(reward, ps, out, K, step), step)
+                else:
+                    local = [Group(p, out[g * K:(g + 1) * K], [0.0] * K, [""] * K, {}) for g, p in enumerate(ps)]
+                    groups = sharding.gather_rows(accelerator, local, mine)
+                t2 = time.time()
+                rollouts = [r for g in groups for r in g.rollouts]
+                rewards = torch.tensor([x for g in groups for x in g.rewards], dtype=torch.float32)
+                with_reward = cfg.reward_weight > 0 and on_policy
+                # ---- update: one optimizer step on the step's token mean (micro-batches by the token budget)
+                batch = collate_rollouts(rollouts, tokenizer.pad_token_id).to(device)
+                rows = {"input_ids": batch.input_ids, "attention_mask": batch.attention_mask,
+                        "loss_mask": batch.completion_mask}
+                if with_reward:
+                    rows["advantages"] = group_advantages(rewards, K, estimator="grpo", std_scale="group").to(device)
+                mbs = sharding.micro_batches(rows, torch.arange(len(rollouts), device=device), cfg.micro_batch_size,
+                                             "token_mean", rank, world, budget)
+                loss_fn = functools.partial(distill_loss, cfg, model, teacher, vocab, with_reward, world)
+                m = loop.optimizer_step(accelerator, model, optimizer, scheduler, mbs, loss_fn, cfg.max_grad_norm,
+                                        done, weights=[tokens for _, _, tokens in mbs])
+                if saving or evaluating:
+                    loop.check_weights(done, model)
+
+            # ---- log
+            lengths = [len(r.completion_ids) for r in rollouts]
+            m.update({"samples/student": float(on_policy), "completion/length": sum(lengths) / len(lengths),
+                      "completion/truncated": sum(r.finish_reason == "length" for r in rollouts) / len(rollouts),
+                      "tokens/generated": float(sum(lengths)), "time/sample": t1 - t0, "time/score": t2 - t1,
+                      "time/train": time.time() - t2, "time/step": time.time() - t_step})
+            if reward is not None:
+                m["reward/mean"] = float(rewards.mean())
+                m["zero_var_frac"] = float(zero_variance_groups(rewards, K).float().mean()) if K > 1 else 0.0
+            metrics.log(done, m, console=False)
+            if main and not res.run.quiet and (done % cfg.log_every == 0 or done == cfg.max_steps):
+                print(progress_line(done, cfg.max_steps, m, time.time() - t_start, start), flush=True)
+            # ---- eval
+            if main and held is not None and held.n_eval and evaluating and done != cfg.max_steps:
+                em = held.summarise(held.evaluate(student, tokenizer, held.n_eval), held.n_eval)
+                metrics.log(done, em, console=False)
+                say(f"[distill] step {done} eval, {held.n_eval} held-out problems: "
+                    + ", ".join(f"{k.removeprefix('eval/')} {v:.3f}" for k, v in em.items()))
+            # ---- checkpoint
+            if saving:
+                ckpt.save(done, model, optimizer, scheduler, {"step": done})
+
+        final = run_dir / "final"
+        if main:
+            save_model(student, tokenizer, final)
+            say(f"[distill] saved {final}")
+            report = held.compare(student, tokenizer, baseline, metrics, cfg.max_steps, say) if held is not None else {}
+            if teacher_eval:
+                report["teacher"] = teacher_eval
+                key = "eval/accuracy" if "eval/accuracy" in teacher_eval else None
+                if key:
+                    say(f"[distill] teacher's held-out greedy accuracy: {teacher_eval[key]:.3f}")
+            loop.write_json(run_dir / "eval.json", {"model": str(final), "sft_model": str(sft_dir),
+                                                    "teacher_model": str(t_dir), **report})
+        accelerator.wait_for_everyone()
+        return final
+
+
+# ----------------------------------------------------------------------------- log
+def teacher_baseline(held: HeldOut, teacher, tokenizer, path: Path, say) -> dict[str, float]:
+    """The teacher's held-out numbers (once per run directory: read back on resume)."""
+    import json
+
+    if not held.n_final and not held.n_eval:
+        return {}
+    if path.is_file():
+        return json.loads(path.read_text())
+    n = held.n_final or held.n_eval
+    m = held.summarise(held.evaluate(teacher, tokenizer, n), n)
+    loop.write_json(path, m)
+    if "eval/accuracy" in m:
+        say(f"[distill] teacher, greedy, {n} held-out problems: accuracy {m['eval/accuracy']:.3f}")
+    return m
+
+
+def describe_run(cfg: DistillConfig, t_dir: Path, n: int, verifier, world: int, device, budget: int) -> str:
+    loss = f"jsd (beta {cfg.jsd_beta:g})" if cfg.loss == "jsd" else cfg.loss
+    data = "the student's samples" if cfg.student_fraction == 1 else "the teacher's samples" \
+        if cfg.student_fraction == 0 else f"the student's samples with probability {cfg.student_fraction:g}, else " \
+                                          "the teacher's"
+    return (f"[distill] teacher {t_dir}; {n} training prompts, {cfg.prompts_per_step} prompts x {cfg.group_size} "
+            f"samples per step, {cfg.max_steps} steps; loss {loss} on {data}"
+            + (f" + {cfg.reward_weight:g} x verifier {verifier.name} policy gradient" if cfg.reward_weight else "")
+            + f"; {world} process(es) on {device}; micro-batches <= {budget} tokens")
+
+
+def progress_line(done: int, total: int, m: dict[str, float], elapsed: float, start: int) -> str:
+    eta = elapsed / max(1, done - start) * (total - done)
+    shown = [("loss", m["loss"]), ("kl_rev", m.get("kl/reverse")), ("kl_fwd", m.get("kl/forward")),
+             ("reward", m.get("reward/mean")), ("len", m["completion/length"])]
+    return (f"[distill] step {done}/{total} " + " ".join(f"{k} {v:.4g}" for k, v in shown if v is not None)
+            + ("" if m["samples/student"] else " (teacher samples)")
+            + f" | {m['time/step']:.2f}s (sample {m['time/sample']:.2f}, train {m['time/train']:.2f}), "
+            f"{elapsed:.0f}s elapsed, eta {eta:.0f}s")
