@@ -27,6 +27,9 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             same random-init tiny model, prompts, 2 prompts x 8 completions x <= 64 tokens, reward (length
             verifier), beta 0, one pass; s/step. Then the same with GSPO on both sides (policy_loss=gspo;
             TRL's importance_sampling_level="sequence", loss_type="grpo"; the paper's clip ranges 3e-4 / 4e-4).
+  distill   an on-policy distillation step of `posttrain distill` (the trainer, through the CLI) against TRL's
+            DistillationTrainer: random-init tiny student, small teacher (same tokenizer), 16 prompts x 1
+            completion x <= 64 tokens, reverse KL over the vocabulary (TRL beta 1.0); s/step.
   real      a real instruct model (--real DIR, default models/smollm2-135m-instruct; skipped when missing): the
             engine with fp32 and with bf16 weights (rollout.dtype) against fp32 `model.generate` at batch 1 / 16 /
             32 (word-math prompts through the chat template, T=1, exactly max_new_tokens), and one training step
@@ -1006,6 +1009,145 @@ def bench_grpo(args) -> dict:
                 gspo=dict(ours_s_per_step=go, trl_s_per_step=gt, ratio=gt / go))
 
 
+# ------------------------------------------------------------------ section: distill
+
+
+def _distill_setup(args) -> SimpleNamespace:
+    """An on-policy distillation step of `posttrain distill` (the trainer, through the CLI) against TRL's
+    DistillationTrainer (TRL >= 1.x; GKD's on-policy loss).
+
+    Same random-init tiny student and tokenizer (vocabulary 1024), a teacher of the `small` preset (another seed,
+    same tokenizer), the same 64 prompts of 20 words, 16 prompts x 1 completion per step, at most 64 new tokens
+    (a random model rarely samples eos, so rows run ~60 tokens on both sides), temperature 1, the per-token reverse
+    KL over the full vocabulary (ours: loss=reverse_kl; TRL: beta=1.0), lr 1e-4 constant, clipping 1.0. TRL is
+    configured for this CPU: fp32, gradient checkpointing off, no logging / saving. Time per step: ours is
+    metrics.jsonl's time/step (sampling + teacher + update); TRL's is timed between its on_step_begin and
+    on_step_end callbacks (its generation happens inside the step). The first 2 steps of every run are warm-up
+    and excluded; runs alternate; medians over all remaining steps.
+    """
+    from posttrain.cli import STAGES, main as posttrain_main
+
+    STAGES["distill"].load()
+    from posttrain.models import save_model
+
+    steps = 8 if args.quick else 14
+    root = Path(tempfile.mkdtemp(prefix="posttrain-bench-distill-"))
+    corpus = _corpus(300)
+    tok = train_tokenizer(corpus, vocab_size=1024)
+    student = build_model("tiny", tok, seed=0)
+    teacher = build_model("small", tok, seed=1)
+    save_model(student, tok, root / "student")
+    save_model(teacher, tok, root / "teacher")
+    prompts = [" ".join(c.split()[:20]) for c in corpus[:64]]
+    (root / "prompts.jsonl").write_text("".join(json.dumps({"prompt": p}) + "\n" for p in prompts))
+    recipe = root / "bench-distill.yaml"
+    recipe.write_text(f"""# on-policy distillation step benchmark (scripts/bench.py); posttrain distill --recipe this file, ~1 min
+task: {{name: tiny-countdown, n_train: 16, n_eval: 8}}
+model: {{path: {root / 'student'}, max_length: 256}}
+distill:
+  teacher: {root / 'teacher'}
+  verifier: none
+  train_file: {root / 'prompts.jsonl'}
+  prompts_per_step: 16
+  max_new_tokens: {args.max_new_tokens}
+  lr: 1.0e-4
+  eval_every: 0
+  save_every: 0
+""")
+    sft = root / "runs" / "bench-distill" / "sft" / "final"
+    sft.parent.mkdir(parents=True)
+    shutil.copytree(root / "student", sft)
+
+    def ours() -> tuple[list[float], dict[str, float]]:
+        with contextlib.redirect_stdout(io.StringIO()):
+            rc = posttrain_main(["distill", "--recipe", str(recipe), f"run.output_dir={root / 'runs'}",
+                                 f"run.threads={args.threads}", "run.quiet=true", f"max_steps={steps}"])
+        assert rc == 0, "posttrain distill failed"
+        rows = [json.loads(l) for l in
+                (root / "runs" / "bench-distill" / "distill" / "metrics.jsonl").read_text().splitlines()]
+        rows = [r for r in rows if "time/step" in r][2:]
+        phases = {k: statistics.median(r[f"time/{k}"] for r in rows) for k in ("sample", "train")}
+        phases["completion_tokens"] = statistics.mean(r["completion/length"] for r in rows)
+        return [r["time/step"] for r in rows], phases
+
+    ctx = SimpleNamespace(steps=steps, student=student, teacher=teacher, runners={"posttrain": ours}, trl_error=None,
+                          cleanup=lambda: shutil.rmtree(root, ignore_errors=True))
+    try:
+        from datasets import Dataset
+        from transformers import TrainerCallback
+        from trl import DistillationConfig, DistillationTrainer
+    except ImportError as e:
+        ctx.trl_error = e
+        return ctx
+    printer = _trl_quiet()
+    trl_tok = copy.deepcopy(tok)
+    trl_tok.padding_side = "left"  # TRL's generation needs left padding
+
+    class StepTimer(TrainerCallback):
+        def __init__(self):
+            self.times, self.t0 = [], 0.0
+
+        def on_step_begin(self, *a, **k):
+            self.t0 = time.perf_counter()
+
+        def on_step_end(self, *a, **k):
+            _sync(args.device)
+            self.times.append(time.perf_counter() - self.t0)
+
+    def trl_run() -> list[float]:
+        targs = DistillationConfig(output_dir=str(root / "trl"), per_device_train_batch_size=16,
+                                   max_completion_length=args.max_new_tokens, temperature=1.0, beta=1.0,
+                                   learning_rate=1e-4, lr_scheduler_type="constant", max_grad_norm=1.0,
+                                   max_steps=steps, bf16=False, fp16=False, **_no_checkpointing(),
+                                   use_cpu=args.device == "cpu", logging_strategy="no", save_strategy="no",
+                                   report_to=[], disable_tqdm=True, dataloader_num_workers=0, seed=0)
+        timer = StepTimer()
+        with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+            trainer = DistillationTrainer(model=copy.deepcopy(student), teacher_model=copy.deepcopy(teacher),
+                                          args=targs, train_dataset=Dataset.from_list([{"prompt": p} for p in prompts]),
+                                          processing_class=trl_tok, callbacks=[timer])
+            trainer.remove_callback(printer)
+            out = trainer.train()
+        assert out.global_step == steps, f"TRL ran {out.global_step} steps, expected {steps}"
+        assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
+        return timer.times[2:]
+
+    ctx.runners["trl"] = trl_run
+    return ctx
+
+
+def bench_distill(args) -> dict:
+    ctx = _distill_setup(args)
+    steps, rounds = ctx.steps, 1 if args.quick else 2
+    print(f"student tiny {count_parameters(ctx.student) / 1e6:.2f}M, teacher small {count_parameters(ctx.teacher) / 1e6:.2f}M "
+          f"parameters; 16 prompts x 1 completion x <= {args.max_new_tokens} tokens per step, reverse KL over the "
+          f"vocabulary, {steps} steps per run ({rounds} run(s) each, first 2 steps excluded)")
+    if ctx.trl_error is not None:
+        _trl_missing(ctx.trl_error)
+        t, phases = ctx.runners["posttrain"]()
+        print(f"ours: {statistics.median(t):.3f} s/step ({phases})")
+        ctx.cleanup()
+        return dict(ours_s_per_step=statistics.median(t), ours_phases=phases)
+    t_ours, t_trl, phases = [], [], {}
+    for _ in range(rounds):  # alternate, so drifting load hits both
+        t, phases = ctx.runners["posttrain"]()
+        t_ours += t
+        t_trl += ctx.runners["trl"]()
+    mo, mt = statistics.median(t_ours), statistics.median(t_trl)
+    print(f"{'implementation':<58} {'s/step':>7} {'ratio':>7}")
+    print(f"{'TRL DistillationTrainer (beta 1: reverse KL; fp32)':<58} {mt:>7.3f} {mt / mo:>6.2f}x")
+    print(f"{'posttrain distill (loss=reverse_kl)':<58} {mo:>7.3f} {'1.00x':>7}")
+    print(f"posttrain phases (medians): sample {phases['sample']:.3f} s, teacher + update {phases['train']:.3f} s; "
+          f"{phases['completion_tokens']:.1f} completion tokens per row")
+    print("ratio = TRL time per step / posttrain time per step, same student, teacher, prompts and budget.")
+    mem = peak_memory("distill", ["posttrain", "trl"], args)
+    print_memory(mem, {"posttrain": f"posttrain distill ({steps} steps)",
+                       "trl": f"TRL DistillationTrainer ({steps} steps)"})
+    ctx.cleanup()
+    return dict(steps_per_run=steps, rounds=rounds, ours_s_per_step=mo, trl_s_per_step=mt, ratio=mt / mo,
+                ours_phases=phases, ours_times=t_ours, trl_times=t_trl, memory=mem)
+
+
 # ------------------------------------------------------------------ section: scaling
 
 
@@ -1187,6 +1329,7 @@ SECTIONS = {
     "dpo": bench_dpo,
     "ppo": bench_ppo,
     "grpo": bench_grpo,
+    "distill": bench_distill,
     "scaling": bench_scaling,
     "real": bench_real,
 }
@@ -1199,6 +1342,7 @@ SETUPS = {
     "dpo": _dpo_setup,
     "ppo": _ppo_setup,
     "grpo": _grpo_setup,
+    "distill": _distill_setup,
 }
 
 

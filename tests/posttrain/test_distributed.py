@@ -174,3 +174,43 @@ def test_grpo_two_processes_match_one_process(tmp_path, tiny_lm):
                   "grad_norm"):
             assert a[k] == pytest.approx(b[k], rel=1e-4, abs=1e-6), (k, a[k], b[k])
     assert max(float((w1[k] - w2[k]).abs().max()) for k in w1) < 1e-4
+
+
+@pytest.mark.slow
+def test_distill_two_processes_match_one_process(tmp_path, tiny_lm):
+    """On-policy distillation under 2 processes == 1 process at the same global batch and seed: P = 3 prompts
+    (split 2 + 1) x K = 2 samples, the groups gathered, the step's token mean split over the processes by
+    `sharding.micro_batches` (micro_batch_size=1: one process gets a zero-weight padding micro-batch), a small
+    teacher of the same tokenizer on every process. Same samples exactly; losses, KLs and gradient norms differ
+    only by float summation order (stated tolerance 1e-4 relative), final weights within 1e-4."""
+    import shutil
+
+    from safetensors.torch import load_file
+
+    from posttrain.models import build_model, load_tokenizer, save_model
+
+    sft = tiny_lm("tiny-countdown", vocab_size=256, max_length=128, split_digits=True)
+    teacher = save_model(build_model("small", load_tokenizer(sft), seed=7), load_tokenizer(sft), tmp_path / "teacher")
+    args = ["--recipe", "tiny-countdown", "run.threads=1", f"teacher={teacher}", "verifier_workers=0",
+            "prompts_per_step=3", "group_size=2", "max_new_tokens=12", "max_steps=3", "micro_batch_size=1", "lr=1e-3",
+            "eval_every=0", "eval_rows=4", "final_eval_rows=4", "save_every=3", "task.n_train=64", "task.n_eval=16"]
+    runs = {}
+    for name, launch in (("one", []), ("two", ["-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes",
+                                              "2", "--num_machines", "1", "--mixed_precision", "no",
+                                              "--dynamo_backend", "no"])):
+        out = tmp_path / name
+        shutil.copytree(sft, out / "tiny-countdown" / "sft" / "final")  # never runs SFT
+        text = _run([sys.executable, *launch, "-m", "posttrain", "distill", *args, f"run.output_dir={out}"], tmp_path)
+        assert f"{1 if name == 'one' else 2} process(es)" in text
+        assert text.count("held-out greedy accuracy") == 1  # the main process's only
+        run = out / "tiny-countdown" / "distill"
+        rows = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
+        runs[name] = ([r for r in rows if "kl/reverse" in r], load_file(run / "final" / "model.safetensors"))
+    (one, w1), (two, w2) = runs["one"], runs["two"]
+    assert [r["step"] for r in one] == [r["step"] for r in two] == [1, 2, 3]
+    for a, b in zip(one, two):
+        for k in ("completion/length", "completion/truncated", "tokens/generated", "reward/mean", "lr"):
+            assert a[k] == b[k], (k, a[k], b[k])  # the same samples and scores
+        for k in ("loss", "kl/reverse", "kl/forward", "nll", "grad_norm"):
+            assert a[k] == pytest.approx(b[k], rel=1e-4, abs=1e-6), (k, a[k], b[k])
+    assert max(float((w1[k] - w2[k]).abs().max()) for k in w1) < 1e-4

@@ -153,3 +153,14 @@ def test_from_nothing_with_a_teacher_of_another_size(tmp_path, write_jsonl):
     ev = json.loads((out / "mini" / "distill" / "eval.json").read_text())
     assert Path(ev["teacher_model"]) == teacher and Path(ev["sft_model"]) == out / "mini" / "sft" / "final"
     assert "eval/accuracy" in ev["teacher"] and "eval/accuracy" in ev["distill"] and Path(ev["model"]).is_dir()
+
+
+def test_lora_distills_adapters_and_saves_a_merged_model(student, sharp_teacher, tmp_path, capsys):
+    out = tmp_path / "lora"
+    assert main(_args(student, out, sharp_teacher, "lora.enabled=true", "lora.r=4", "max_steps=3", "final_eval_rows=0",
+                      "eval_rows=0", "run.quiet=false")) == 0
+    assert "[distill] LoRA r=4" in capsys.readouterr().out
+    final = out / "tiny-countdown" / "distill" / "final"
+    assert (final / "model.safetensors").is_file() and not (final / "adapter_config.json").exists()
+    kl = [s["kl/reverse"] for s in _steps(out)]
+    assert len(kl) == 3 and all(k > 0 for k in kl)
