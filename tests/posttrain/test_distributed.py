@@ -202,7 +202,7 @@ def test_distill_two_processes_match_one_process(tmp_path, tiny_lm):
         shutil.copytree(sft, out / "tiny-countdown" / "sft" / "final")  # never runs SFT
         text = _run([sys.executable, *launch, "-m", "posttrain", "distill", *args, f"run.output_dir={out}"], tmp_path)
         assert f"{1 if name == 'one' else 2} process(es)" in text
-        assert text.count("held-out greedy accuracy") == 1  # the main process's only
+        assert text.count("[distill] held-out greedy accuracy on") == 1  # the main process's only
         run = out / "tiny-countdown" / "distill"
         rows = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
         runs[name] = ([r for r in rows if "kl/reverse" in r], load_file(run / "final" / "model.safetensors"))
