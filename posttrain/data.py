@@ -1,4 +1,4 @@
-"""Loading, validating and saving the three row schemas posttrain trains on.
+"""Loading, validating and saving the row schemas posttrain trains on.
 
     from posttrain.data import load_rows
     ds = load_rows("data/train.jsonl", "sft")          # a datasets.Dataset, every row checked
@@ -7,6 +7,7 @@ Schemas (full text with examples in data/README.md):
 - ``sft``:        ``prompt: str``, ``completion: str``, optional ``meta``.
 - ``preference``: ``prompt: str``, ``chosen: str``, ``rejected: str``, optional ``meta``.
 - ``verifiable``: ``prompt: str``, ``answer: str | JSON object``, ``verifier: str``, optional ``meta``.
+- ``prompt``:     ``prompt: str``, optional ``meta`` (prompts to sample from, e.g. ``distill.train_file``).
 Text fields must be strings with at least one non-space character; ``answer`` is non-empty
 text or a non-empty JSON object (numbers must be written as text: ``"42"``); ``meta`` is a
 JSON object or null. Other fields are ignored and dropped.
@@ -54,12 +55,13 @@ import torch
 from posttrain.chat import encode_prompts
 from posttrain.errors import DataError  # noqa: F401  (raised here; importable from here as before)
 
-Schema = Literal["sft", "preference", "verifiable"]
+Schema = Literal["sft", "preference", "verifiable", "prompt"]
 
 TEXT_FIELDS: dict[str, tuple[str, ...]] = {
     "sft": ("prompt", "completion"),
     "preference": ("prompt", "chosen", "rejected"),
     "verifiable": ("prompt", "answer", "verifier"),  # answer: text or a JSON object
+    "prompt": ("prompt",),  # prompts only (on-policy distillation without a verifier)
 }
 JSON_FIELDS = ("answer", "meta")  # stored as f"{name}_json" text columns
 LOAD_EXTENSIONS = (".jsonl", ".json", ".parquet")

@@ -116,14 +116,15 @@ def preflight(verifier, pool, rows: list[dict[str, Any]], source: str, say, *, s
             f"row {i + 1}: {v.score:.2f}, {v.reason!r}); check that the verifier matches the task's answer format")
 
 
-def split_rows(task_cfg, split: str, file: str | None) -> tuple[list[dict], str]:
-    """The rows of a problem file (e.g. grpo.train_file / eval_file), else of the task's split (the recipe's
-    `task:` section); and where they come from."""
+def split_rows(task_cfg, split: str, file: str | None, schema: str = "verifiable") -> tuple[list[dict], str]:
+    """The rows of a problem file (e.g. grpo.train_file / eval_file; `schema` "prompt": prompts without a
+    reference, for a run without a verifier), else of the task's split (the recipe's `task:` section); and where
+    they come from."""
     from posttrain import tasks
     from posttrain.data import load_rows
 
     if file:
-        return [dict(r) for r in load_rows(file, "verifiable")], file
+        return [dict(r) for r in load_rows(file, schema)], file
     return tasks.load_split(task_cfg, split), f"task {task_cfg.name} ({split})"
 
 

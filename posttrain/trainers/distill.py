@@ -191,8 +191,9 @@ def load_problems(res: Resolved, cfg: DistillConfig):
         task = tasks.get_task(res.task.name)
     except ValueError as e:
         raise ConfigError(f"task.name: {e}") from None
-    train_rows, train_source = split_rows(res.task, "train", cfg.train_file)
-    eval_rows, eval_source = split_rows(res.task, "eval", cfg.eval_file)
+    schema = "prompt" if cfg.verifier == "none" else "verifiable"  # no verifier: a prompt file needs no answers
+    train_rows, train_source = split_rows(res.task, "train", cfg.train_file, schema)
+    eval_rows, eval_source = split_rows(res.task, "eval", cfg.eval_file, schema)
     eval_rows = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)]
     verifier = build_verifier(cfg.verifier, cfg.verifier_options, task, train_rows, stage="distill")
     if verifier is not None:

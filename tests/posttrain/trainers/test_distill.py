@@ -164,3 +164,16 @@ def test_lora_distills_adapters_and_saves_a_merged_model(student, sharp_teacher,
     assert (final / "model.safetensors").is_file() and not (final / "adapter_config.json").exists()
     kl = [s["kl/reverse"] for s in _steps(out)]
     assert len(kl) == 3 and all(k > 0 for k in kl)
+
+
+def test_prompts_without_answers_and_no_verifier(student, sharp_teacher, tmp_path, write_jsonl, capsys):
+    """verifier=none: a file of bare prompts (the `prompt` schema) is enough; nothing is evaluated for accuracy."""
+    prompts = write_jsonl(tmp_path / "p.jsonl", [{"prompt": f"Reach {i} with 3 4 5."} for i in range(8)])
+    out = tmp_path / "bare"
+    assert main(_args(student, out, sharp_teacher, "verifier=none", f"train_file={prompts}", "max_steps=2")) == 0
+    steps = _steps(out)
+    assert len(steps) == 2 and "reward/mean" not in steps[0]
+    assert not (out / "tiny-countdown" / "distill" / "teacher_eval.json").exists()
+    bad = write_jsonl(tmp_path / "bad.jsonl", [{"prompt": "ok"}, {"question": "no prompt"}])
+    assert main(_args(student, tmp_path / "b", sharp_teacher, "verifier=none", f"train_file={bad}")) == 2
+    assert f"{bad}: row 2: field 'prompt': missing" in capsys.readouterr().err
