@@ -29,9 +29,8 @@ Compute budget: every arm gets about the same number of sequence forward+backwar
 completions, at steps 10, 20, ..., 70); PPO: 20 iterations x 64 rollouts x 2 epochs x 2 models (policy, value)
 = 5,120 sequences (+ 20 x 64 samples). Measured wall times are reported next to the results.
 
-CPU:  python scripts/reproduce_e6.py --quick      tiny preset (~1.2M parameters), all seven arms x 3 seeds: not timed
-                                                   yet with seven arms, roughly 20-30 min with --threads 1 on 2 CPU
-                                                   cores (the two-arm version measured 7-11 min; RESULTS.md, E6)
+CPU:  python scripts/reproduce_e6.py --quick      tiny preset (~1.2M parameters), all seven arms x 3 seeds: 20.4 min
+                                                   with --threads 2 on 2 idle CPU cores (RESULTS.md, E6)
       python scripts/reproduce_e6.py --quick --arms dpo-offline ppo-rm    the headline arms only (about the
                                                    two-arm time)
       python scripts/reproduce_e6.py              small preset (~11M parameters, the seed's 10M+): not timed with seven
