@@ -1,6 +1,9 @@
 """The `posttrain` command line: the only place that maps names (stages, recipes) to code.
 
     posttrain recipes                                   list shipped recipes
+    posttrain recipes show NAME|PATH [stage.k=v ...]    the fully resolved config of every stage it configures
+    posttrain recipes cp NAME PATH                      a copy to edit, runnable with --recipe PATH
+    posttrain validate --recipe NAME|PATH [stage.k=v]   every stage resolved and range-checked, no model loaded
     posttrain sft  --recipe tiny-summarize [k=v ...]     run a stage (builds what it needs first)
     posttrain eval --recipe tiny-summarize [model=PATH] [reference=PATH]
     posttrain <stage> --help                            the stage's config fields with their docs
@@ -150,6 +153,74 @@ def ensure_stage(res: Resolved, stage: str, model: str | None = None) -> Path:
     return run(sub, lambda name, model=None: ensure_stage(sub, name, model))
 
 
+# ----------------------------------------------------------------------------- recipe tools
+def recipe_stages(recipe: str, overrides: list[str]) -> list[Resolved]:
+    """Every stage the recipe configures (its sections) and eval, resolved with `overrides`, which must name their
+    section (`grpo.lr=1e-4`, `model.path=small`): a bare key would be ambiguous across stages."""
+    from posttrain.config import SHARED_SECTIONS, load_recipe, parse_overrides
+
+    _, raw = load_recipe(recipe)
+    for key, _ in parse_overrides(overrides):
+        head, _, rest = key.partition(".")
+        if not rest or (head not in STAGES and head not in SHARED_SECTIONS):
+            raise ConfigError(f"override {key!r}: this command resolves every stage, so name the section "
+                              f"(stage.key=value, e.g. grpo.lr=1e-4, or model.path=small)")
+    stages = [name for name in STAGES if name in raw and name != "eval"] + ["eval"]
+    out = []
+    for name in stages:
+        cfg_cls, _ = STAGES[name].load()
+        res = resolve(recipe, name, cfg_cls, overrides)
+        check_stage_sections(res, {n: st.load()[0] for n, st in STAGES.items() if n in res.raw_recipe})
+        out.append(res)
+    return out
+
+
+def validate(recipe: str, overrides: list[str]) -> list[Resolved]:
+    """`posttrain validate`: `recipe_stages`, then each stage's own range checks (its trainer's `check_config`,
+    where it has one): the ConfigErrors a run would raise before loading a model."""
+    import importlib
+    import inspect
+
+    checked = recipe_stages(recipe, overrides)
+    for res in checked:
+        check = getattr(importlib.import_module(STAGES[res.stage].module), "check_config", None)
+        if check is not None:
+            check(res.stage_cfg) if len(inspect.signature(check).parameters) == 1 else check(res.stage_cfg, 1)
+    return checked
+
+
+def recipes_command(rest: list[str]) -> int:
+    """`posttrain recipes [list | show NAME [k=v ...] | cp NAME PATH]`."""
+    import shutil
+
+    import yaml
+
+    from posttrain.config import resolve_recipe
+
+    if not rest or rest[0] == "list":
+        for name, desc in list_recipes():
+            print(f"{name:<20} {desc}")
+        return 0
+    what, args = rest[0], rest[1:]
+    if what == "show" and args:
+        for res in recipe_stages(args[0], args[1:]):
+            print(f"# ---- {res.stage}")
+            print(yaml.safe_dump(res.to_dict(), sort_keys=False).rstrip())
+        return 0
+    if what == "cp" and len(args) == 2:
+        src, dst = resolve_recipe(args[0]), Path(args[1])
+        if dst.suffix not in (".yaml", ".yml"):
+            dst = dst / src.name if dst.is_dir() else dst.with_suffix(".yaml")
+        if dst.exists():
+            raise ConfigError(f"{dst} exists; give a new path (nothing is overwritten)")
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(src, dst)
+        print(f"copied {src} -> {dst}; run it with `--recipe {dst}` (its runs go to runs/{dst.stem}/)")
+        return 0
+    raise ConfigError(f"posttrain recipes {' '.join(rest)}: expected `recipes`, `recipes show NAME [stage.k=v ...]` "
+                      "or `recipes cp NAME PATH`")
+
+
 # ----------------------------------------------------------------------------- commands
 def _print_help(stage: str, cfg_cls: type) -> None:
     print(f"posttrain {stage} --recipe NAME|PATH [key=value ...]\n\n{STAGES[stage].help}\n")
@@ -185,15 +256,22 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     top = argparse.ArgumentParser(prog="posttrain", description="LLM post-training on a laptop CPU and beyond.",
                                   epilog="stages: " + ", ".join(f"{k} ({v.help})" for k, v in STAGES.items()))
-    top.add_argument("command", help="recipes | verifiers | verify | models | " + " | ".join(STAGES))
+    top.add_argument("command", help="recipes | validate | verifiers | verify | models | " + " | ".join(STAGES))
     if not argv or argv[0] in ("-h", "--help"):
         top.print_help()
         return 0
     cmd, rest = argv[0], argv[1:]
     try:
         if cmd == "recipes":
-            for name, desc in list_recipes():
-                print(f"{name:<20} {desc}")
+            return recipes_command(rest)
+        if cmd == "validate":
+            p = argparse.ArgumentParser(prog="posttrain validate", description="resolve and check every stage of a "
+                                        "recipe (types, keys, ranges) without loading a model")
+            p.add_argument("--recipe", required=True, help="recipe name (posttrain recipes) or path to a YAML file")
+            p.add_argument("overrides", nargs="*", help="stage.key=value / section.key=value overrides")
+            args = p.parse_args(rest)
+            checked = validate(args.recipe, args.overrides)
+            print(f"{args.recipe}: valid ({', '.join(res.stage for res in checked)})")
             return 0
         if cmd in ("verifiers", "verify"):
             from verifiers.cli import main as vmain
@@ -204,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
 
             return model_files.main(rest)
         if cmd not in STAGES:
-            raise ConfigError(f"unknown command {cmd!r}; choose one of: recipes, verifiers, verify, models, "
+            raise ConfigError(f"unknown command {cmd!r}; choose one of: recipes, validate, verifiers, verify, models, "
                               f"{', '.join(STAGES)}")
         cfg_cls, run = STAGES[cmd].load()
         if "-h" in rest or "--help" in rest:

@@ -351,10 +351,8 @@ def evaluate(step: int, cfg: DPOConfig, task_name: str, model, policy, tokenizer
     model.train()
 
 
-# ----------------------------------------------------------------------------- train
-def train(res: Resolved, ensure) -> Path:
-    """Train the SFT model with DPO on preference pairs; returns the final model directory."""
-    cfg: DPOConfig = res.stage_cfg
+def check_config(cfg: DPOConfig) -> None:
+    """Inconsistent settings are a ConfigError before anything runs."""
     if cfg.online and cfg.online_every < 1:
         raise ConfigError(f"dpo.online_every must be >= 1, got {cfg.online_every}")
     if cfg.label_smoothing and cfg.loss_type != "sigmoid":
@@ -369,6 +367,13 @@ def train(res: Resolved, ensure) -> Path:
     if cfg.desirable_weight < 0 or cfg.undesirable_weight < 0:
         raise ConfigError(f"dpo.desirable_weight and dpo.undesirable_weight must be >= 0, got {cfg.desirable_weight}, "
                           f"{cfg.undesirable_weight}")
+
+
+# ----------------------------------------------------------------------------- train
+def train(res: Resolved, ensure) -> Path:
+    """Train the SFT model with DPO on preference pairs; returns the final model directory."""
+    cfg: DPOConfig = res.stage_cfg
+    check_config(cfg)
     run_dir = res.stage_dir()
     data, sft_dir, tokenizer = load_pairs(res, ensure, cfg)  # a bad row stops the run before the run dir changes
     rm_dir = resolve_proxy_rm(res, ensure, cfg.proxy_rm, cfg.online and cfg.online_labeler == "rm")

@@ -59,3 +59,45 @@ def test_unknown_task_and_command(capsys):
 def test_python_dash_m_entry_point():
     out = subprocess.run([sys.executable, "-m", "posttrain", "recipes"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and "tiny-summarize" in out.stdout
+
+
+# ----------------------------------------------------------------------------- recipe tools
+def test_validate_resolves_and_range_checks_every_stage_without_a_model(capsys, tmp_path, monkeypatch):
+    from posttrain import models
+
+    monkeypatch.setattr(models, "load_model", lambda *a, **k: (_ for _ in ()).throw(AssertionError("loaded a model")))
+    assert main(["validate", "--recipe", "tiny-math"]) == 0
+    assert "tiny-math: valid (sft, grpo, distill, eval)" in capsys.readouterr().out
+    # a range check that lives in a trainer (grpo.check_config), a type error, a typo in another stage's section
+    for override, message in (("grpo.clip_eps=-1", "grpo.clip_eps and clip_eps_high must be > 0"),
+                              ("distill.student_fraction=2", "distill.student_fraction must be in [0, 1]"),
+                              ("sft.max_steps=many", "sft.max_steps"),
+                              ("grpo.clip_epss=0.1", "clip_epss"),
+                              ("lr=1e-3", "name the section")):
+        assert main(["validate", "--recipe", "tiny-math", override]) == 2, override
+        assert message in capsys.readouterr().err, override
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("# a recipe with a DPO setting out of range\ntask: {name: tiny-summarize}\ndpo: {beta: 0}\n")
+    assert main(["validate", "--recipe", str(bad)]) == 2
+    assert "dpo.beta must be > 0" in capsys.readouterr().err
+
+
+def test_recipes_show_prints_every_resolved_stage_and_cp_makes_a_runnable_copy(capsys, tmp_path):
+    import yaml
+
+    assert main(["recipes", "show", "tiny-summarize", "dpo.beta=0.2"]) == 0
+    text = capsys.readouterr().out
+    parts = [p for p in text.split("# ---- ")[1:]]
+    stages = [p.split("\n", 1)[0] for p in parts]
+    assert stages[-1] == "eval" and {"sft", "dpo", "ppo"} <= set(stages)
+    dpo = yaml.safe_load(parts[stages.index("dpo")].split("\n", 1)[1])
+    assert dpo["dpo"]["beta"] == 0.2 and dpo["model"]["path"] and dpo["recipe"] == "tiny-summarize"
+    dst = tmp_path / "mine.yaml"
+    assert main(["recipes", "cp", "tiny-summarize", str(dst)]) == 0
+    assert "run it with `--recipe" in capsys.readouterr().out
+    assert main(["validate", "--recipe", str(dst)]) == 0
+    assert f"{dst}: valid (sft, prefs, rm, dpo, ppo, eval)" in capsys.readouterr().out
+    assert main(["recipes", "cp", "tiny-summarize", str(dst)]) == 2  # never overwrites
+    assert "exists" in capsys.readouterr().err
+    assert main(["recipes", "frobnicate"]) == 2
+    assert "recipes show NAME" in capsys.readouterr().err
