@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -150,7 +151,17 @@ def ensure_stage(res: Resolved, stage: str, model: str | None = None) -> Path:
     print(f"[posttrain] no {stage} output at {final}; running `posttrain {stage} --recipe {res.recipe}{other}` first")
     cfg_cls, run = STAGES[stage].load()
     sub = res.for_stage(stage, cfg_cls)
-    return run(sub, lambda name, model=None: ensure_stage(sub, name, model))
+    final = run(sub, lambda name, model=None: ensure_stage(sub, name, model))
+    _card(final, sub, ["posttrain", stage, "--recipe", res.recipe, *shlex.split(other)])
+    return final
+
+
+def _card(final: Any, res: Resolved, command: list[str]) -> None:
+    """final/README.md, the model card (`posttrain.model_card`), by the main process only."""
+    from posttrain import model_card
+
+    if isinstance(final, (str, os.PathLike)) and int(os.environ.get("RANK", "0")) == 0:
+        model_card.write_card(final, res.to_dict(), command)
 
 
 # ----------------------------------------------------------------------------- recipe tools
@@ -301,7 +312,8 @@ def main(argv: list[str] | None = None) -> int:
         configure(**asdict(res.rollout))  # every stage of this command generates through it (vllm: checked here)
         _quiet_libraries()
         try:
-            run(res, lambda name, model=None: ensure_stage(res, name, model))
+            final = run(res, lambda name, model=None: ensure_stage(res, name, model))
+            _card(final, res, ["posttrain", *argv])
         finally:
             configure()  # the process-wide defaults again (a caller of main() generates as before)
         return 0

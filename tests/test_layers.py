@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS: list[set[str]] = [
     {"errors", "runtime"},
     {"config"},
-    {"data", "tasks", "chat", "models", "model_files"},
+    {"data", "tasks", "chat", "models", "model_files", "model_card"},
     {"lean"},
     {"logprobs", "losses", "advantages"},
     {"rollout", "loop", "sharding"},

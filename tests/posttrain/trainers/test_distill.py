@@ -62,6 +62,10 @@ def test_the_students_reverse_kl_to_a_sharp_teacher_falls(student, sharp_teacher
     ev = json.loads((run / "eval.json").read_text())
     assert {"sft", "distill", "teacher"} <= set(ev) and "eval/accuracy" in ev["teacher"]
     assert (run / "final" / "model.safetensors").is_file()
+    from huggingface_hub import ModelCard
+
+    card = ModelCard.load(run / "final" / "README.md")  # the model card the CLI writes
+    assert "distill" in card.data.tags and "posttrain distill --recipe tiny-countdown" in card.text
 
 
 def test_a_student_equal_to_its_teacher_has_zero_loss_for_every_divergence(student, tmp_path):
