@@ -4,6 +4,7 @@
     posttrain recipes show NAME|PATH [stage.k=v ...]    the fully resolved config of every stage it configures
     posttrain recipes cp NAME PATH                      a copy to edit, runnable with --recipe PATH
     posttrain validate --recipe NAME|PATH [stage.k=v]   every stage resolved and range-checked, no model loaded
+    posttrain rollouts RUN_DIR [--step N] [--worst K]   a GRPO run's saved rollouts (save_rollouts_every), readably
     posttrain sft  --recipe tiny-summarize [k=v ...]     run a stage (builds what it needs first)
     posttrain eval --recipe tiny-summarize [model=PATH] [reference=PATH]
     posttrain <stage> --help                            the stage's config fields with their docs
@@ -232,6 +233,47 @@ def recipes_command(rest: list[str]) -> int:
                       "or `recipes cp NAME PATH`")
 
 
+def rollouts_command(rest: list[str]) -> int:
+    """`posttrain rollouts RUN_DIR [--step N] [--worst K]`: the rollouts a run saved (GRPO's save_rollouts_every),
+    one block each: reward and its parts, advantage, length and finish reason, the verifier's reason, prompt and
+    completion. The newest saved step unless --step; --worst K: only the K lowest rewards."""
+    from posttrain.data import DataError
+    from posttrain.rollout import load_rollouts
+
+    p = argparse.ArgumentParser(prog="posttrain rollouts", description="print a run's saved rollouts")
+    p.add_argument("run_dir", help="a stage's run directory (runs/<recipe>/grpo) or its rollouts/ directory")
+    p.add_argument("--step", type=int, default=None, help="the step to show (default: the newest saved)")
+    p.add_argument("--worst", type=int, default=0, help="only the K rollouts with the lowest rewards")
+    args = p.parse_args(rest)
+    root = Path(args.run_dir)
+    folder = root if root.name == "rollouts" else root / "rollouts"
+    files = sorted(folder.glob("step-*.jsonl"))
+    if not files:
+        raise DataError(f"{folder}: no saved rollouts (step-*.jsonl); run the stage with save_rollouts_every=N")
+    steps = {int(f.stem.split("-")[1]): f for f in files}
+    step = max(steps) if args.step is None else args.step
+    if step not in steps:
+        raise DataError(f"{folder}: no rollouts of step {step}; saved steps: {', '.join(map(str, sorted(steps)))}")
+    rows = list(enumerate(load_rollouts(steps[step])))
+    if args.worst:
+        rows = sorted(rows, key=lambda t: (t[1].reward if t[1].reward is not None else float("inf"), t[0]))[:args.worst]
+    print(f"step {step}: {len(rows)} rollout(s) of {steps[step]}")
+    for i, r in rows:
+        ex = r.extras
+        parts = ", ".join(f"{k} {v:.3g}" for k, v in (ex.get("parts") or {}).items())
+        head = [f"reward {r.reward:.3g}" + (f" ({parts})" if parts else "") if r.reward is not None else "no reward"]
+        if "advantage" in ex:
+            head.append(f"advantage {ex['advantage']:+.3g}" + (" (zero-variance group)" if ex.get("zero_variance_group")
+                                                               else ""))
+        head.append(f"{len(r.completion_ids)} tokens, {r.finish_reason}")
+        print(f"\n#{i} prompt {r.prompt_index} sample {r.sample_index} | " + " | ".join(head))
+        if ex.get("reason"):
+            print(f"  reason: {ex['reason']}")
+        print("  prompt: " + " ".join((r.prompt or f"<{len(r.prompt_ids)} token ids>").split())[:300])
+        print("  completion: " + r.text.replace("\n", "\n              "))
+    return 0
+
+
 # ----------------------------------------------------------------------------- commands
 def _print_help(stage: str, cfg_cls: type) -> None:
     print(f"posttrain {stage} --recipe NAME|PATH [key=value ...]\n\n{STAGES[stage].help}\n")
@@ -267,7 +309,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     top = argparse.ArgumentParser(prog="posttrain", description="LLM post-training on a laptop CPU and beyond.",
                                   epilog="stages: " + ", ".join(f"{k} ({v.help})" for k, v in STAGES.items()))
-    top.add_argument("command", help="recipes | validate | verifiers | verify | models | " + " | ".join(STAGES))
+    top.add_argument("command", help="recipes | validate | rollouts | verifiers | verify | models | "
+                     + " | ".join(STAGES))
     if not argv or argv[0] in ("-h", "--help"):
         top.print_help()
         return 0
@@ -275,6 +318,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if cmd == "recipes":
             return recipes_command(rest)
+        if cmd == "rollouts":
+            return rollouts_command(rest)
         if cmd == "validate":
             p = argparse.ArgumentParser(prog="posttrain validate", description="resolve and check every stage of a "
                                         "recipe (types, keys, ranges) without loading a model")
@@ -293,7 +338,8 @@ def main(argv: list[str] | None = None) -> int:
 
             return model_files.main(rest)
         if cmd not in STAGES:
-            raise ConfigError(f"unknown command {cmd!r}; choose one of: recipes, validate, verifiers, verify, models, "
+            raise ConfigError(f"unknown command {cmd!r}; choose one of: recipes, validate, rollouts, verifiers, verify, "
+                              "models, "
                               f"{', '.join(STAGES)}")
         cfg_cls, run = STAGES[cmd].load()
         if "-h" in rest or "--help" in rest:

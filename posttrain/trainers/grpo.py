@@ -224,7 +224,8 @@ class GRPOConfig:
     keep_checkpoints: int = 2
     """Checkpoints kept on disk (oldest deleted first)."""
     save_rollouts_every: int = 0
-    """Steps between saving a step's scored rollouts to rollouts/step-NNNNNN.jsonl (0: never)."""
+    """Steps between saving a step's scored rollouts to rollouts/step-NNNNNN.jsonl (0: never); read them with
+    `posttrain rollouts RUN_DIR`."""
     seed: int = 0
     """Seed of prompt order, sampling and row shuffles."""
     resume: bool = False
@@ -594,12 +595,20 @@ def progress_line(done: int, total: int, m: dict[str, float], timing: dict[str, 
             f"train {timing['train']:.2f}), {elapsed:.0f}s elapsed, eta {eta:.0f}s")
 
 
-def save_scored_rollouts(sb: StepBatch, path: Path) -> None:
+def save_scored_rollouts(cfg: GRPOConfig, sb: StepBatch, path: Path) -> None:
+    """The step's rollouts (every round) with what a reader asks of each: the prompt text, the reward and each
+    reward part, the verifier's reason, the group advantage, whether its group was degenerate (`posttrain
+    rollouts RUN_DIR` prints them)."""
     from posttrain.rollout import save_rollouts
 
-    for r, reward, reason in zip(sb.rollouts, sb.rewards.tolist(), sb.reasons):
+    K = cfg.group_size
+    adv = group_advantages(sb.rewards, K, estimator=cfg.estimator, std_scale=cfg.std_scale).tolist()
+    degenerate = zero_variance_groups(sb.rewards, K).tolist()
+    for i, (r, reward, reason) in enumerate(zip(sb.rollouts, sb.rewards.tolist(), sb.reasons)):
         r.reward = reward
-        r.extras["reason"] = reason
+        r.prompt = sb.problems[i // K].prompt
+        r.extras.update(reason=reason, advantage=adv[i], zero_variance_group=bool(degenerate[i // K]),
+                        parts={k: v[i] for k, v in sb.parts.items()})
     save_rollouts(sb.rollouts, path)
 
 
@@ -718,7 +727,7 @@ def train(res: Resolved, ensure) -> Path:
             if main and not res.run.quiet and (done % cfg.log_every == 0 or done == cfg.max_steps):
                 print(progress_line(done, cfg.max_steps, m, timing, time.time() - t_start, start), flush=True)
             if main and cfg.save_rollouts_every and done % cfg.save_rollouts_every == 0:
-                save_scored_rollouts(sb, run_dir / "rollouts" / f"step-{done:06d}.jsonl")
+                save_scored_rollouts(cfg, sb, run_dir / "rollouts" / f"step-{done:06d}.jsonl")
             # ---- eval
             if main and held.n_eval and evaluating and done != cfg.max_steps:
                 em = held.summarise(held.evaluate(policy, tokenizer, held.n_eval), held.n_eval)

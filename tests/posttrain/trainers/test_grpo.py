@@ -79,6 +79,20 @@ def test_diagnostics_per_step_and_eval(sft_model, tmp_path, capsys):
     assert "held-out greedy accuracy on 8 problems: SFT" in capsys.readouterr().out
     saved = [json.loads(l) for l in (run / "rollouts" / "step-000002.jsonl").read_text().splitlines()]
     assert len(saved) == 16 and all(r["reward"] is not None and "reason" in r["extras_json"] for r in saved)
+    extras = [json.loads(r["extras_json"]) for r in saved]
+    assert all(r["prompt"] for r in saved) and all(set(e["parts"]) >= {"countdown", "format"} for e in extras)
+    for g in range(4):  # group advantages: zero mean within each group of 4
+        assert sum(e["advantage"] for e in extras[4 * g:4 * g + 4]) == pytest.approx(0.0, abs=1e-5)
+    capsys.readouterr()
+    assert main(["rollouts", str(run), "--worst", "3"]) == 0
+    shown = capsys.readouterr().out
+    assert shown.startswith("step 2: 3 rollout(s)") and shown.count("\n#") == 3 and "advantage" in shown
+    lowest = sorted(r["reward"] for r in saved)[0]
+    assert f"reward {lowest:.3g}" in shown.split("\n#")[1] and "prompt: " in shown and "completion: " in shown
+    assert main(["rollouts", str(run), "--step", "1"]) == 2  # saved every 2 steps: there is no step 1
+    assert "no rollouts of step 1; saved steps: 2" in capsys.readouterr().err
+    assert main(["rollouts", str(tmp_path)]) == 2
+    assert "no saved rollouts" in capsys.readouterr().err
 
 
 def test_degenerate_groups_are_explained_in_words(sft_model, tmp_path, capsys):
