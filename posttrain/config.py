@@ -21,6 +21,7 @@ from typing import Any, Literal
 import yaml
 
 from posttrain.errors import ConfigError  # noqa: F401  (raised here; importable from here as before)
+from posttrain import trackers
 from posttrain.runtime import dtype_problem
 
 
@@ -84,6 +85,10 @@ class RunConfig:
     ratios to the fp32 sampler are no longer exactly 1; generation is not autocast: `rollout.dtype` sets it): no (what `accelerate launch`
     says, else none), bf16, or auto (bf16 where the hardware has native bf16: a GPU, or a CPU with AVX512-BF16
     or AMX; on other CPUs bf16 is emulated and slower)."""
+    report_to: str | list[str] = "none"
+    """Experiment trackers that get every metric of metrics.jsonl and the resolved config (posttrain.trackers):
+    none, or one or more of tensorboard, wandb, trackio, mlflow (`run.report_to=tensorboard,wandb`); each is an
+    extra (`pip install "posttrain[wandb]"`). Resolved to a list; an unknown or uninstalled name is a config error."""
     micro_batch_tokens: int = 0
     """Padded tokens per forward / backward in every stage, a bound on activation memory (each stage's
     micro_batch_size still caps the rows); 0: auto, the tokens whose activations take ~2 GiB for this model
@@ -411,6 +416,7 @@ def resolve(recipe: str, stage: str, stage_cls: type, overrides: list[str] | Non
     if res.lora.enabled and (res.lora.r < 1 or res.lora.alpha <= 0 or not 0 <= res.lora.dropout < 1):
         raise ConfigError(f"config keys lora.r / lora.alpha / lora.dropout: need r >= 1, alpha > 0, 0 <= dropout < 1 "
                           f"(got {res.lora.r}, {res.lora.alpha}, {res.lora.dropout})")
+    res.run.report_to = trackers.parse_report_to(res.run.report_to)
     if res.model.dtype != "float32":
         problem = dtype_problem(res.model.dtype)
         if problem:

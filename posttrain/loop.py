@@ -41,6 +41,7 @@ from posttrain.data import token_groups  # noqa: F401  (micro-batches by tokens;
 from posttrain.errors import TrainingError  # noqa: F401  (raised here; importable from here as before)
 from posttrain.runtime import has_accelerator_device, set_threads, tune_malloc
 from posttrain.runtime import mixed_precision as resolve_mixed_precision
+from posttrain.trackers import Trackers, flat_config
 
 
 
@@ -304,8 +305,10 @@ def batch_indices(n: int, batch_size: int, seed: int, step: int, rank: int = 0, 
 class MetricsLog:
     """metrics.jsonl (one JSON object per logged step) and a console progress line."""
 
-    def __init__(self, path: Path, total_steps: int, enabled: bool = True, quiet: bool = False, prefix: str = ""):
+    def __init__(self, path: Path, total_steps: int, enabled: bool = True, quiet: bool = False, prefix: str = "",
+                 trackers: "Trackers | None" = None):
         self.path = Path(path)
+        self.trackers = trackers if enabled else None  # run.report_to: the same rows, streamed
         self.total = total_steps
         self.enabled = enabled
         self.quiet = quiet
@@ -318,6 +321,8 @@ class MetricsLog:
     def truncate_after(self, step: int) -> None:
         """On resume: drop rows logged after the checkpoint's step (they will be redone)."""
         self.start_step = step
+        if self.trackers is not None:
+            self.trackers.resume_step = step
         if not (self.enabled and self.path.exists()):
             return
         keep = []
@@ -338,12 +343,39 @@ class MetricsLog:
         row.update({k: (float(v) if isinstance(v, (int, float, np.floating)) else v) for k, v in metrics.items()})
         with open(self.path, "a") as f:
             f.write(json.dumps(row) + "\n")
+        if self.trackers is not None:
+            self.trackers.log(metrics, step)
         if console and not self.quiet:
             done = step - self.start_step
             elapsed = time.time() - self.t0
             eta = elapsed / max(1, done) * max(0, self.total - step)
             shown = " ".join(f"{k} {_fmt(v)}" for k, v in metrics.items() if isinstance(v, (int, float)))
             print(f"{self.prefix}step {step}/{self.total} {shown} | {elapsed:.0f}s elapsed, eta {eta:.0f}s", flush=True)
+
+
+    def log_table(self, name: str, rows: list[dict[str, Any]], step: int) -> None:
+        """A table (a step's saved rollouts) to the trackers that show tables; the JSONL file is the caller's."""
+        if self.trackers is not None:
+            self.trackers.log_table(name, rows, step)
+
+    def close(self, final: dict[str, Any] | None = None) -> None:
+        """Finish the trackers (each stage of a chain is its own tracker run), after sending them the numbers of the
+        final evaluation (eval.json's report, as `final/<key>...` at the last step); metrics.jsonl needs nothing.
+        Idempotent: a trainer closes once after its report and once on every process."""
+        if self.trackers is not None:
+            if final:
+                flat = flat_config(final, "final/", sep="/")
+                self.trackers.log(flat, self.total)
+            self.trackers.finish()
+            self.trackers = None
+
+
+def open_metrics(res, total_steps: int, main: bool, prefix: str) -> MetricsLog:
+    """The stage's MetricsLog: `<run_dir>/metrics.jsonl`, the console line, and `run.report_to`'s trackers."""
+    run_dir = res.stage_dir()
+    tracked = (Trackers(res.run.report_to, run_dir, res.recipe, res.stage, res.to_dict())
+               if main and res.run.report_to else None)
+    return MetricsLog(run_dir / "metrics.jsonl", total_steps, main, res.run.quiet, prefix=prefix, trackers=tracked)
 
 
 def _fmt(v: float) -> str:

@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # Bottom to top. A module's unit is its first component under posttrain/ (posttrain.rollout.engine -> rollout).
 LAYERS: list[set[str]] = [
-    {"errors", "runtime"},
+    {"errors", "runtime", "trackers"},
     {"config"},
     {"data", "tasks", "chat", "models", "model_files", "model_card"},
     {"lean"},

@@ -201,6 +201,18 @@ def save_rollouts(rollouts: Sequence[Rollout], path: str | os.PathLike) -> Path:
     return p
 
 
+def table_rows(rollouts: Sequence[Rollout]) -> list[dict[str, Any]]:
+    """The rollouts as flat rows for a tracker's table: what a reader scans (no token ids or log-probs)."""
+    rows = []
+    for r in rollouts:
+        ex = r.extras or {}
+        rows.append({"prompt": r.prompt, "completion": r.text, "reward": r.reward, "advantage": ex.get("advantage"),
+                     "reason": ex.get("reason"), "parts": json.dumps(ex.get("parts", {}), sort_keys=True),
+                     "length": len(r.completion_ids), "finish_reason": r.finish_reason,
+                     "prompt_index": r.prompt_index, "sample_index": r.sample_index})
+    return rows
+
+
 def load_rollouts(path: str | os.PathLike) -> list[Rollout]:
     """Read rollouts written by `save_rollouts` (.jsonl or .parquet)."""
     from datasets import Dataset

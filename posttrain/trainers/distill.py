@@ -334,7 +334,7 @@ def train(res: Resolved, ensure) -> Path:
         model, optimizer = accelerator.prepare(model, optimizer)
         student = accelerator.unwrap_model(model)
         ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
-        metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, main, res.run.quiet, prefix="[distill] ")
+        metrics = loop.open_metrics(res, cfg.max_steps, main, "[distill] ")
         start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say,
                                 tag="distill")["step"]
         baseline = held.sft_baseline(student, tokenizer, run_dir / "sft_eval.json", start, metrics, say) \
@@ -419,6 +419,8 @@ def train(res: Resolved, ensure) -> Path:
                     say(f"[distill] teacher's held-out greedy accuracy: {teacher_eval[key]:.3f}")
             loop.write_json(run_dir / "eval.json", {"model": str(final), "sft_model": str(sft_dir),
                                                     "teacher_model": str(t_dir), **report})
+            metrics.close(report)
+        metrics.close()
         accelerator.wait_for_everyone()
         return final
 

@@ -400,7 +400,7 @@ def train(res: Resolved, ensure) -> Path:
     scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
     model, optimizer = accelerator.prepare(model, optimizer)
     ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
-    metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, main, res.run.quiet, prefix="[dpo] ")
+    metrics = loop.open_metrics(res, cfg.max_steps, main, "[dpo] ")
     state = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="dpo")
     start, saved = state["step"], state["extra"].get("online_pool")  # an online pool (the offline one: rebuilt)
     pool = Pool(**{**saved, "pairs": [TokenizedPair(**p) for p in saved["pairs"]]}) if saved else \
@@ -457,5 +457,7 @@ def train(res: Resolved, ensure) -> Path:
                 "dpo", res.task.name, policy, ref.model_for(policy), tokenizer, data.gold_rows[: cfg.final_eval_rows],
                 baseline, max_new_tokens=cfg.max_new_tokens, proxy=proxy, seed=cfg.seed + 7, say=say))
         loop.write_json(run_dir / "eval.json", report)
+        metrics.close(report)
+    metrics.close()
     accelerator.wait_for_everyone()
     return final

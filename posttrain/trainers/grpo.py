@@ -595,11 +595,12 @@ def progress_line(done: int, total: int, m: dict[str, float], timing: dict[str, 
             f"train {timing['train']:.2f}), {elapsed:.0f}s elapsed, eta {eta:.0f}s")
 
 
-def save_scored_rollouts(cfg: GRPOConfig, sb: StepBatch, path: Path) -> None:
+def save_scored_rollouts(cfg: GRPOConfig, sb: StepBatch, path: Path) -> list[dict]:
     """The step's rollouts (every round) with what a reader asks of each: the prompt text, the reward and each
     reward part, the verifier's reason, the group advantage, whether its group was degenerate (`posttrain
-    rollouts RUN_DIR` prints them)."""
+    rollouts RUN_DIR` prints them). Returns them as table rows (for the trackers that show tables)."""
     from posttrain.rollout import save_rollouts
+    from posttrain.rollout.records import table_rows
 
     K = cfg.group_size
     adv = group_advantages(sb.rewards, K, estimator=cfg.estimator, std_scale=cfg.std_scale).tolist()
@@ -610,6 +611,7 @@ def save_scored_rollouts(cfg: GRPOConfig, sb: StepBatch, path: Path) -> None:
         r.extras.update(reason=reason, advantage=adv[i], zero_variance_group=bool(degenerate[i // K]),
                         parts={k: v[i] for k, v in sb.parts.items()})
     save_rollouts(sb.rollouts, path)
+    return table_rows(sb.rollouts)
 
 
 # ----------------------------------------------------------------------------- train
@@ -660,7 +662,7 @@ def train(res: Resolved, ensure) -> Path:
         model, optimizer = accelerator.prepare(model, optimizer)
         policy = accelerator.unwrap_model(model)
         ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
-        metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, main, res.run.quiet, prefix="[grpo] ")
+        metrics = loop.open_metrics(res, cfg.max_steps, main, "[grpo] ")
         state = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="grpo")
         start, saved = state["step"], state["extra"].get("curriculum")
         curriculum = None if cfg.prompt_sampling == "uniform" else Curriculum.fresh(len(problems)) if saved is None \
@@ -727,7 +729,8 @@ def train(res: Resolved, ensure) -> Path:
             if main and not res.run.quiet and (done % cfg.log_every == 0 or done == cfg.max_steps):
                 print(progress_line(done, cfg.max_steps, m, timing, time.time() - t_start, start), flush=True)
             if main and cfg.save_rollouts_every and done % cfg.save_rollouts_every == 0:
-                save_scored_rollouts(cfg, sb, run_dir / "rollouts" / f"step-{done:06d}.jsonl")
+                table = save_scored_rollouts(cfg, sb, run_dir / "rollouts" / f"step-{done:06d}.jsonl")
+                metrics.log_table("rollouts", table, done)
             # ---- eval
             if main and held.n_eval and evaluating and done != cfg.max_steps:
                 em = held.summarise(held.evaluate(policy, tokenizer, held.n_eval), held.n_eval)
@@ -745,5 +748,7 @@ def train(res: Resolved, ensure) -> Path:
             say(f"[grpo] saved {final}")
             report = held.compare(policy, tokenizer, baseline, metrics, cfg.max_steps, say)
             loop.write_json(run_dir / "eval.json", {"model": str(final), "sft": str(sft_dir), **report})
+            metrics.close(report)
+        metrics.close()
         accelerator.wait_for_everyone()
         return final

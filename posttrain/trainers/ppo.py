@@ -483,7 +483,7 @@ def train(res: Resolved, ensure) -> Path:
     kl_ctl = (AdaptiveKLController(cfg.kl_coef, cfg.kl_target, cfg.kl_horizon) if cfg.kl_control == "adaptive"
               else FixedKLController(cfg.kl_coef))
     ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
-    metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, main, res.run.quiet, prefix="[ppo] ")
+    metrics = loop.open_metrics(res, cfg.max_steps, main, "[ppo] ")
     state = loop.resume_run(ckpt, metrics, m.policy, opt_p, sched_p, resume=cfg.resume, say=say, tag="ppo",
                             unit="iteration")
     norm = (extra := state["extra"]).get("reward_norm")  # resumed: PPO's own part of the checkpoint, restored below
@@ -595,5 +595,7 @@ def train(res: Resolved, ensure) -> Path:
                 "ppo", res.task.name, pol, m.reference, m.tokenizer, held_out[: cfg.final_eval_rows], baseline,
                 max_new_tokens=cfg.max_new_tokens, proxy=m.proxy, seed=cfg.seed + 7, say=say))
         loop.write_json(run_dir / "eval.json", report)
+        metrics.close(report)
+    metrics.close()
     accelerator.wait_for_everyone()
     return final

@@ -142,7 +142,7 @@ def train(res: Resolved, ensure) -> Path:
     scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
     model, optimizer = accelerator.prepare(model, optimizer)
     ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
-    metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, main, res.run.quiet, prefix="[rm] ")
+    metrics = loop.open_metrics(res, cfg.max_steps, main, "[rm] ")
 
     start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="rm")["step"]
 
@@ -185,5 +185,7 @@ def train(res: Resolved, ensure) -> Path:
                                                "seconds": round(time.time() - t0, 1)})
         say(f"[rm] saved {final}" + (f" (held-out pair accuracy {ev['eval/accuracy']:.3f} on {len(eval_pairs)} pairs)"
                                      if ev else ""))
+        metrics.close(ev)
+    metrics.close()
     accelerator.wait_for_everyone()
     return final

@@ -135,8 +135,7 @@ def train(res: Resolved, ensure) -> Path:
     scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
     model, optimizer = accelerator.prepare(model, optimizer)
     ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
-    metrics = loop.MetricsLog(run_dir / "metrics.jsonl", cfg.max_steps, accelerator.is_main_process,
-                              res.run.quiet, prefix="[sft] ")
+    metrics = loop.open_metrics(res, cfg.max_steps, accelerator.is_main_process, "[sft] ")
 
     start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="sft")["step"]
 
@@ -193,5 +192,7 @@ def train(res: Resolved, ensure) -> Path:
                                               max_new_tokens=cfg.max_new_tokens)
             loop.write_json(run_dir / "eval.json", {"untrained": before, "sft": after})
             say(evaluation.format_comparison({"untrained": before, "sft": after}, res.task.name))
+            metrics.close({"untrained": before, "sft": after})
+    metrics.close()
     accelerator.wait_for_everyone()
     return final
