@@ -5,6 +5,7 @@
     posttrain recipes cp NAME PATH                      a copy to edit, runnable with --recipe PATH
     posttrain validate --recipe NAME|PATH [stage.k=v]   every stage resolved and range-checked, no model loaded
     posttrain rollouts RUN_DIR [--step N] [--worst K]   a GRPO run's saved rollouts (save_rollouts_every), readably
+    posttrain plot RUN_DIR [--out DIR]                  PNGs of a stage's metrics.jsonl (RUN_DIR/plots/)
     posttrain sft  --recipe tiny-summarize [k=v ...]     run a stage (builds what it needs first)
     posttrain eval --recipe tiny-summarize [model=PATH] [reference=PATH]
     posttrain <stage> --help                            the stage's config fields with their docs
@@ -274,6 +275,21 @@ def rollouts_command(rest: list[str]) -> int:
     return 0
 
 
+def plot_command(rest: list[str]) -> int:
+    """`posttrain plot RUN_DIR [--out DIR]`: PNGs of the stage's metrics.jsonl, one per family of metrics."""
+    from posttrain import plots
+
+    p = argparse.ArgumentParser(prog="posttrain plot", description="PNGs of a run's metrics (loss, lr, reward, KL, "
+                                                                   "entropy, accuracy, lengths, speed)")
+    p.add_argument("run_dir", help="a stage's run directory (runs/<recipe>/<stage>) or its metrics.jsonl")
+    p.add_argument("--out", default=None, help="where the PNGs go (default: RUN_DIR/plots)")
+    args = p.parse_args(rest)
+    written = plots.plot_run(args.run_dir, args.out)
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
 # ----------------------------------------------------------------------------- commands
 def _print_help(stage: str, cfg_cls: type) -> None:
     print(f"posttrain {stage} --recipe NAME|PATH [key=value ...]\n\n{STAGES[stage].help}\n")
@@ -320,6 +336,8 @@ def main(argv: list[str] | None = None) -> int:
             return recipes_command(rest)
         if cmd == "rollouts":
             return rollouts_command(rest)
+        if cmd == "plot":
+            return plot_command(rest)
         if cmd == "validate":
             p = argparse.ArgumentParser(prog="posttrain validate", description="resolve and check every stage of a "
                                         "recipe (types, keys, ranges) without loading a model")

@@ -21,7 +21,7 @@ LAYERS: list[set[str]] = [
     {"lean"},
     {"logprobs", "losses", "advantages"},
     {"rollout", "loop", "sharding"},
-    {"scoring", "evaluation", "preferences", "problems"},
+    {"scoring", "evaluation", "preferences", "problems", "plots"},
     {"trainers"},
     {"cli", "__main__", "__init__"},
 ]
