@@ -28,12 +28,14 @@ class EvalConfig:
 
 
 def complete(model, tokenizer, prompts: list[str], *, max_new_tokens: int = 64, greedy: bool = True,
-             temperature: float = 1.0, n: int = 1, seed: int = 0) -> list[str]:
-    """Completion texts for `prompts` (n per prompt, prompt-major), from the rollout engine."""
+             temperature: float = 1.0, n: int = 1, seed: int = 0, label: str = "[eval] generating") -> list[str]:
+    """Completion texts for `prompts` (n per prompt, prompt-major), from the rollout engine; a phase that runs
+    long prints its progress with an ETA (`loop.Progress`, under `label`)."""
+    from posttrain.loop import Progress
     from posttrain.rollout import SamplingParams, generate
 
     params = SamplingParams(n=n, max_new_tokens=max_new_tokens, greedy=greedy, temperature=temperature, seed=seed)
-    return [r.text for r in generate(model, tokenizer, prompts, params)]
+    return [r.text for r in generate(model, tokenizer, prompts, params, progress=Progress(label))]
 
 
 def evaluate_model(task_name: str, model, tokenizer, rows: list[dict[str, Any]], *, max_new_tokens: int = 64,

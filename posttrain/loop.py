@@ -370,6 +370,34 @@ class MetricsLog:
             self.trackers = None
 
 
+class Progress:
+    """A long phase's progress with an ETA, as `generate(progress=...)` reports it: `label: done/total (pct), Ns
+    elapsed, eta Ms`, at most every `every_s` seconds and only once the phase has run that long (a short
+    evaluation prints nothing), then one closing line if it printed any. `quiet`: print nothing."""
+
+    def __init__(self, label: str, every_s: float = 15.0, quiet: bool = False, clock: Callable[[], float] = time.time,
+                 out: Callable[[str], None] | None = None):
+        self.label, self.every_s, self.quiet, self.clock = label, every_s, quiet, clock
+        self.out = out or (lambda line: print(line, flush=True))
+        self.t0 = self.last = clock()
+        self.printed = False
+
+    def __call__(self, done: int, total: int) -> None:
+        now = self.clock()
+        if self.quiet or total <= 0:
+            return
+        if done >= total:
+            if self.printed:
+                self.out(f"{self.label}: {total}/{total} done in {now - self.t0:.0f}s")
+            return
+        if now - self.last < self.every_s:
+            return
+        self.last, self.printed = now, True
+        elapsed = now - self.t0
+        eta = elapsed / max(done, 1) * (total - done)
+        self.out(f"{self.label}: {done}/{total} ({100 * done / total:.0f}%), {elapsed:.0f}s elapsed, eta {eta:.0f}s")
+
+
 def open_metrics(res, total_steps: int, main: bool, prefix: str) -> MetricsLog:
     """The stage's MetricsLog: `<run_dir>/metrics.jsonl`, the console line, and `run.report_to`'s trackers."""
     run_dir = res.stage_dir()

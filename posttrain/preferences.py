@@ -157,13 +157,15 @@ def sample_pairs(model, tokenizer, rows: list[dict], labeler, *, prompt_keys: Se
     `rows` carry "prompt" (and "meta" for the gold labeler); `prompt_keys` are stable ids (dataset
     indices) that seed each prompt's samples and extra-pair choice. Returns (pair rows, stats).
     """
+    from posttrain.loop import Progress
     from posttrain.rollout import SamplingParams, generate
 
     if samples_per_prompt < 2:
         raise ValueError(f"samples_per_prompt must be >= 2 to form pairs, got {samples_per_prompt}")
     params = SamplingParams(n=samples_per_prompt, temperature=temperature, top_p=top_p,
                             max_new_tokens=max_new_tokens, seed=seed)
-    rollouts = generate(model, tokenizer, [r["prompt"] for r in rows], params, prompt_keys=list(prompt_keys))
+    rollouts = generate(model, tokenizer, [r["prompt"] for r in rows], params, prompt_keys=list(prompt_keys),
+                        progress=Progress("[prefs] sampling"))
     K = samples_per_prompt
     texts = [[ro.text for ro in rollouts[i * K:(i + 1) * K]] for i in range(len(rows))]
     keys = labeler(rows, texts)

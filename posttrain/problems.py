@@ -257,12 +257,13 @@ class HeldOut:
 
     def evaluate(self, policy, tokenizer, n: int) -> dict[str, Any]:
         """Greedy completions of the first n problems: texts, lengths, truncation, verifier and reward-model scores."""
+        from posttrain.loop import Progress
         from posttrain.rollout import SamplingParams, generate
 
         ps = self.problems[:n]
         rollouts = generate(policy, tokenizer, [p.prompt_ids for p in ps],
                             SamplingParams(n=1, max_new_tokens=self.max_new_tokens, greedy=True),
-                            prompt_keys=[p.key for p in ps])
+                            prompt_keys=[p.key for p in ps], progress=Progress(f"[{self.stage}] held-out eval"))
         texts, prompts = [r.text for r in rollouts], [p.prompt for p in ps]
         ev: dict[str, Any] = {"texts": texts, "lengths": [len(r.completion_ids) for r in rollouts],
                               "truncated": [r.finish_reason == "length" for r in rollouts]}

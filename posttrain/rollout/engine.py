@@ -4,7 +4,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import weakref
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 
@@ -127,7 +127,8 @@ def _eos_ids(model, tokenizer) -> list[int]:
 
 def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling: SamplingParams | None = None, *,
              prompt_keys: Sequence[int] | None = None, max_batch_tokens: int = DEFAULT_MAX_BATCH_TOKENS,
-             backend: str | None = None, **overrides) -> list[Rollout]:
+             backend: str | None = None, progress: Callable[[int, int], None] | None = None,
+             **overrides) -> list[Rollout]:
     """Sample `n` completions for each prompt; returns Rollouts ordered by (prompt_index, sample_index).
 
     prompts: strings (rendered with the tokenizer's chat template when it has one, then tokenized:
@@ -140,6 +141,8 @@ def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling:
     backend: "auto" (lean path when supported, else HF forward), "lean", "hf", or "vllm" (a vLLM engine per
         model, `posttrain.rollout.vllm_backend`; weights pushed to it whenever they changed since its last call);
         None: the process default set by `configure` ("auto" unless configured).
+    progress: called as progress(rows_done, rows_total) after each micro-batch of the built-in engine (a row is
+        one (prompt, sample)); `loop.Progress` prints it with an ETA for long phases (evaluation, pair sampling).
     """
     backend = default_backend() if backend is None else backend
     if backend not in BACKENDS:
@@ -210,9 +213,13 @@ def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling:
         model.eval()
     try:
         with torch.inference_mode():
+            total, done = sum(len(b) for b in batches), 0
             for rows in batches:
                 _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_table, tokenizer, pad_id,
                                  results)
+                done += len(rows)
+                if progress is not None:
+                    progress(done, total)
     finally:
         fwd.release()
         if isinstance(fwd, HFForward) and model_was_training:

@@ -282,3 +282,35 @@ def test_mixed_precision_auto_is_bf16_only_where_the_hardware_has_it(monkeypatch
     assert runtime.mixed_precision("bf16") == "bf16" and runtime.mixed_precision("no") is None
     with pytest.raises(ValueError, match="run.mixed_precision must be no, bf16 or auto"):
         runtime.mixed_precision("fp8")
+
+
+def test_progress_prints_only_long_phases_throttled_with_an_eta():
+    from posttrain.loop import Progress
+
+    clock, lines = [0.0], []
+    p = Progress("[eval] generating", every_s=10.0, clock=lambda: clock[0], out=lines.append)
+    for done, t in [(8, 4.0), (16, 12.0), (24, 15.0), (32, 24.0), (64, 40.0)]:
+        clock[0] = t
+        p(done, 64)
+    assert lines == ["[eval] generating: 16/64 (25%), 12s elapsed, eta 36s",
+                     "[eval] generating: 32/64 (50%), 24s elapsed, eta 24s",
+                     "[eval] generating: 64/64 done in 40s"]
+    short, quiet = [], []
+    p = Progress("x", every_s=10.0, clock=lambda: 1.0, out=short.append)
+    p(5, 10), p(10, 10)
+    q = Progress("x", every_s=0.0, quiet=True, out=quiet.append)
+    q(5, 10), q(10, 10)
+    assert short == [] and quiet == []
+
+
+def test_generate_reports_progress_per_micro_batch(tiny_lm):
+    from posttrain.models import load_model, load_tokenizer
+    from posttrain.rollout import generate
+
+    d = tiny_lm()
+    model, tok = load_model(d), load_tokenizer(d)
+    calls = []
+    generate(model, tok, ["a b", "c d e", "f"], n=2, max_new_tokens=4, max_batch_tokens=16,
+             progress=lambda done, total: calls.append((done, total)))
+    assert len(calls) >= 2 and calls[-1] == (6, 6)
+    assert all(t == 6 for _, t in calls) and [c for c, _ in calls] == sorted(c for c, _ in calls)

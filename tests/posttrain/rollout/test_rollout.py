@@ -47,15 +47,24 @@ def trained():
     data = torch.tensor([(tok(c)["input_ids"] + [tok.eos_token_id])[:40] for c in corpus])
     opt = torch.optim.AdamW(model.parameters(), lr=1e-2)
     g = torch.Generator().manual_seed(0)
-    model.train()
-    for _ in range(60):
+    prompts = [_sentence(rng)[: rng.randint(4, 30)] for _ in range(6)]
+    # Train until the greedy text is varied (most prompts' completions use > 3 distinct tokens), not for a fixed
+    # number of steps: how soon a 60-step run leaves its "a a a" phase differs between CPUs (Zen 3 vs Zen 4).
+    for step in range(1, 601):
+        model.train()
         batch = data[torch.randint(0, len(data), (16,), generator=g)]
         loss = model(input_ids=batch, labels=batch).loss
         opt.zero_grad()
         loss.backward()
         opt.step()
+        if step >= 60 and step % 20 == 0:
+            model.eval()
+            out = generate(model, tok, prompts, greedy=True, max_new_tokens=24)
+            if sum(len(set(r.completion_ids)) > 3 for r in out) >= 4:
+                break
+    else:
+        raise AssertionError("the fixture model's greedy text stayed degenerate after 600 steps")
     model.eval()
-    prompts = [_sentence(rng)[: rng.randint(4, 30)] for _ in range(6)]
     return model, tok, prompts
 
 
