@@ -12,14 +12,12 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any
-
 from posttrain.errors import DataError
 
 # (family, the words that put a metric name into it), first match wins; names are matched in lower case.
 FAMILIES: list[tuple[str, tuple[str, ...]]] = [
     ("loss", ("loss",)),
-    ("lr", ("lr",)),
+    ("lr", ()),  # the exact name only (family_of): "lr" is inside too many other names
     ("kl", ("kl", "mismatch/")),
     ("entropy", ("entropy",)),
     ("curriculum", ("curriculum/",)),
@@ -36,8 +34,6 @@ def family_of(name: str) -> str:
     if low == "lr" or low.endswith("/lr"):
         return "lr"
     for family, words in FAMILIES:
-        if family == "lr":
-            continue
         if any(w in low for w in words):
             return family
     return "other"
@@ -118,7 +114,3 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, title: str 
             written.append(target)
     return written
 
-
-def summary(series: dict[str, Any]) -> str:
-    """`name: first -> last (n points)` per metric, the text beside the PNGs."""
-    return "\n".join(f"  {k}: {v[0][1]:.4g} -> {v[-1][1]:.4g} ({len(v)} points)" for k, v in sorted(series.items()))

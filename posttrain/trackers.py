@@ -155,8 +155,8 @@ class Trackers:
             return
         self.start()
         columns = list(rows[0])
-        data = [[r.get(c) if isinstance(r.get(c), (int, float, str, bool)) or r.get(c) is None else json.dumps(r.get(c))
-                 for c in columns] for r in rows]
+        cell = lambda v: v if v is None or isinstance(v, (int, float, str, bool)) else json.dumps(v)  # noqa: E731
+        data = [[cell(r.get(c)) for c in columns] for r in rows]
         for tracker in self.open:
             if hasattr(tracker, "log_table"):
                 tracker.log_table(name, columns=columns, data=data, step=step)
