@@ -94,6 +94,11 @@ def ensure_base(res: Resolved) -> Path:
             "task_seed": res.task.seed, "train_file": res.task.train_file, "max_length": res.model.max_length}
     if res.model.split_digits:  # only stamped when set, so bases built before the option stay valid
         want["split_digits"] = True
+    chat = res.model.chat_template == "on" or (res.model.chat_template == "auto" and tasks.is_conversational(res.task))
+    if chat:  # a chat template of its own (posttrain.chat.PRESET_CHAT_TEMPLATE), stamped like split_digits
+        want["chat_template"] = True
+    if res.task.columns.mapping():
+        want["columns"] = res.task.columns.mapping()
     stamp = base / "posttrain_base.json"
     import json
 
@@ -105,9 +110,10 @@ def ensure_base(res: Resolved) -> Path:
     if is_model_dir(base) and stamp.is_file():
         print(f"[base] {base} was built with other settings; rebuilding")
     texts = tasks.tokenizer_corpus(res.task)
-    print(f"[base] building the {spec!r} model from scratch: tokenizer trained on {len(texts)} task texts -> {base}")
+    print(f"[base] building the {spec!r} model from scratch: tokenizer trained on {len(texts)} task texts"
+          f"{' with a chat template of its own (conversational data)' if chat else ''} -> {base}")
     model, tok = bootstrap(spec, texts, base, vocab_size=res.model.vocab_size, seed=res.model.seed,
-                           max_length=res.model.max_length, split_digits=res.model.split_digits)
+                           max_length=res.model.max_length, split_digits=res.model.split_digits, chat=chat)
     loop.write_json(stamp, want)
     print(f"[base] {count_parameters(model) / 1e6:.2f}M parameters, vocabulary {len(tok)}")
     return base
@@ -238,6 +244,7 @@ def rollouts_command(rest: list[str]) -> int:
     """`posttrain rollouts RUN_DIR [--step N] [--worst K]`: the rollouts a run saved (GRPO's save_rollouts_every),
     one block each: reward and its parts, advantage, length and finish reason, the verifier's reason, prompt and
     completion. The newest saved step unless --step; --worst K: only the K lowest rewards."""
+    from posttrain.chat import prompt_text
     from posttrain.data import DataError
     from posttrain.rollout import load_rollouts
 
@@ -270,7 +277,8 @@ def rollouts_command(rest: list[str]) -> int:
         print(f"\n#{i} prompt {r.prompt_index} sample {r.sample_index} | " + " | ".join(head))
         if ex.get("reason"):
             print(f"  reason: {ex['reason']}")
-        print("  prompt: " + " ".join((r.prompt or f"<{len(r.prompt_ids)} token ids>").split())[:300])
+        shown = prompt_text(r.prompt) if r.prompt else f"<{len(r.prompt_ids)} token ids>"
+        print("  prompt: " + " ".join(shown.split())[:300])
         print("  completion: " + r.text.replace("\n", "\n              "))
     return 0
 

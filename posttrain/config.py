@@ -27,6 +27,31 @@ from posttrain.runtime import dtype_problem
 
 # ----------------------------------------------------------------------------- shared sections
 @dataclass
+class ColumnsConfig:
+    """Columns of the recipe's data files named otherwise than posttrain's fields (`task.columns.prompt=question`).
+    Every data file of the recipe (task., grpo., dpo., rm., prefs. train and eval files) is read with them."""
+
+    prompt: str | None = None
+    """Column holding the prompt (text or a list of messages); null: `prompt`."""
+    completion: str | None = None
+    """Column holding the SFT completion (or KTO's unpaired completion); null: `completion`."""
+    messages: str | None = None
+    """Column holding a whole conversation for SFT (e.g. `conversations`); null: `messages`."""
+    chosen: str | None = None
+    """Column holding the preferred side of a pair; null: `chosen`."""
+    rejected: str | None = None
+    """Column holding the other side of a pair; null: `rejected`."""
+    answer: str | None = None
+    """Column holding the reference answer of a verifiable problem (e.g. `solution`); null: `answer`."""
+    label: str | None = None
+    """Column holding KTO's desirable/undesirable label; null: `label`."""
+
+    def mapping(self) -> dict[str, str]:
+        """{posttrain's field: the data's column} for the columns that are renamed."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name)}
+
+
+@dataclass
 class TaskConfig:
     name: str = "tiny-summarize"
     """Task generator (posttrain/tasks): tiny-summarize, ..."""
@@ -42,6 +67,8 @@ class TaskConfig:
     """Optional JSONL/Parquet/dataset dir replacing the generated training set."""
     eval_file: str | None = None
     """Optional JSONL/Parquet/dataset dir replacing the generated held-out set."""
+    columns: ColumnsConfig = field(default_factory=ColumnsConfig)
+    """Data columns named otherwise than posttrain's fields (`task.columns.prompt=question`)."""
 
 
 @dataclass
@@ -61,7 +88,7 @@ class ModelConfig:
     split_digits: bool = False
     """Tokenizer built from scratch: every digit its own token (arithmetic tasks such as tiny-math)."""
     chat_template: Literal["auto", "on", "off"] = "auto"
-    """Prompts through the tokenizer's chat template: auto (when it has one), on (error if none), off (plain text)."""
+    """Prompts through the tokenizer's chat template: auto (when it has one), on (error if none; a preset gets one), off."""
     system_prompt: str | None = None
     """System message put before every prompt (needs a chat template); null: what the model's template says."""
     dtype: Literal["float32", "bfloat16", "float16"] = "float32"

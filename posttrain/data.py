@@ -8,9 +8,17 @@ Schemas (full text with examples in data/README.md):
 - ``preference``: ``prompt: str``, ``chosen: str``, ``rejected: str``, optional ``meta``.
 - ``verifiable``: ``prompt: str``, ``answer: str | JSON object``, ``verifier: str``, optional ``meta``.
 - ``prompt``:     ``prompt: str``, optional ``meta`` (prompts to sample from, e.g. ``distill.train_file``).
+- ``unpaired``:   ``prompt``, ``completion``, and a boolean ``label`` (KTO; read by posttrain.preferences).
 Text fields must be strings with at least one non-space character; ``answer`` is non-empty
 text or a non-empty JSON object (numbers must be written as text: ``"42"``); ``meta`` is a
 JSON object or null. Other fields are ignored and dropped.
+
+Conversational rows (TRL's formats; data/README.md): a prompt may be a list of messages, an SFT row may
+be a ``messages`` conversation or have conversational prompt/completion, a preference row may have
+conversational sides or the implicit-prompt form. `normalize_row` brings each into posttrain's form (a
+conversational SFT row keeps ``messages`` and ``train_from`` for the assistant-only loss of
+`tokenize_completions`); every row of a source must have the format of its first row, and `load_rows`
+says that format. ``columns`` ({our field: their column}, ``task.columns``) renames a source's columns.
 
 Sources: a ``.jsonl`` file, a ``.json`` file (an array of objects, or JSON Lines), a
 ``.parquet`` file, or a local directory: either ``Dataset.save_to_disk`` output (a
@@ -52,18 +60,23 @@ from typing import Any, Iterable, Iterator, Literal, Sequence
 import datasets
 import torch
 
-from posttrain.chat import encode_prompts
+from posttrain.chat import ROLES, encode_conversation, encode_prompts, is_conversation, messages_problem
 from posttrain.errors import DataError  # noqa: F401  (raised here; importable from here as before)
 
-Schema = Literal["sft", "preference", "verifiable", "prompt"]
+Schema = Literal["sft", "preference", "verifiable", "prompt", "unpaired"]
 
 TEXT_FIELDS: dict[str, tuple[str, ...]] = {
     "sft": ("prompt", "completion"),
     "preference": ("prompt", "chosen", "rejected"),
     "verifiable": ("prompt", "answer", "verifier"),  # answer: text or a JSON object
     "prompt": ("prompt",),  # prompts only (on-policy distillation without a verifier)
+    "unpaired": ("prompt", "completion"),  # + a boolean label (KTO; posttrain.preferences reads these files)
 }
 JSON_FIELDS = ("answer", "meta")  # stored as f"{name}_json" text columns
+CONVERSATION_FIELDS = ("prompt", "messages")  # conversations, stored as f"{name}_json" text columns too
+SFT_CONVERSATION = ("messages", "train_from")  # what a conversational SFT row carries besides prompt/completion
+STORED_JSON = JSON_FIELDS + CONVERSATION_FIELDS
+COLUMN_NAMES = ("prompt", "completion", "chosen", "rejected", "answer", "messages", "label", "verifier", "meta")
 LOAD_EXTENSIONS = (".jsonl", ".json", ".parquet")
 SAVE_EXTENSIONS = (".jsonl", ".parquet")
 
@@ -91,13 +104,19 @@ def _json_type(value: Any) -> str:
 
 
 def _row_problem(row: Any, schema: Schema) -> tuple[str | None, str] | None:
-    """(field or None, problem) for the first thing wrong with `row`, or None if it is valid."""
+    """(field or None, problem) for the first thing wrong with `row` (in posttrain's form: see `normalize_row`),
+    or None if it is valid."""
     if not isinstance(row, dict):
         return None, f"expected a JSON object, got {_json_type(row)}"
     for field in TEXT_FIELDS[schema]:
         if field not in row:
             return field, "missing"
         value = row[field]
+        if field == "prompt" and isinstance(value, list):
+            problem = _prompt_problem(value)
+            if problem:
+                return field, problem
+            continue
         if field == "answer":
             if isinstance(value, dict):
                 if not value:
@@ -116,6 +135,172 @@ def _row_problem(row: Any, schema: Schema) -> tuple[str | None, str] | None:
     return None
 
 
+# --- conversations ------------------------------------------------------------------------------
+
+class _Bad(Exception):
+    """A row problem found while bringing a row into posttrain's form: (field, what)."""
+
+    def __init__(self, field: str | None, what: str):
+        super().__init__(field, what)
+        self.field, self.what = field, what
+
+
+def _prompt_problem(messages: list) -> str | None:
+    problem = messages_problem(messages)
+    if problem:
+        return problem
+    if messages[-1]["role"] == "assistant":
+        return ("a conversational prompt must not end with an assistant turn (the model writes the next one); "
+                "move the last assistant message to the completion")
+    return None
+
+
+def _conversation(row: dict, field: str, *, prompt: bool = False) -> list[dict] | str:
+    """`row[field]` as text (unchanged) or a checked list of messages; _Bad when it is neither."""
+    value = row[field]
+    if isinstance(value, str):
+        return value
+    problem = _prompt_problem(value) if prompt else messages_problem(value)
+    if problem:
+        raise _Bad(field, problem)
+    return [dict(m) for m in value]
+
+
+def _reply(value: list[dict] | str, field: str) -> str:
+    """A completion side as text: text itself, or a conversation of exactly one assistant message."""
+    if isinstance(value, str):
+        return value
+    if len(value) != 1 or value[0]["role"] != "assistant":
+        roles = ", ".join(m["role"] for m in value)
+        raise _Bad(field, f"expected one assistant message, got {len(value)} message(s) ({roles}); a preference side "
+                          "is one assistant reply")
+    return value[0]["content"]
+
+
+def _as_user(prompt: list[dict] | str) -> list[dict]:
+    return [{"role": "user", "content": prompt}] if isinstance(prompt, str) else prompt
+
+
+def _rename(row: dict, columns: dict[str, str]) -> dict:
+    """`row` with its columns renamed to posttrain's names (`task.columns`: {our name: their name})."""
+    row = dict(row)
+    for ours, theirs in columns.items():
+        if theirs == ours:
+            continue
+        if theirs not in row:
+            if ours in row:
+                continue  # the row already uses our name
+            raise _Bad(theirs, f"missing (task.columns.{ours}={theirs} names it)")
+        row[ours] = row.pop(theirs)
+    return row
+
+
+def normalize_row(row: Any, schema: Schema, columns: dict[str, str] | None = None) -> tuple[Any, str]:
+    """(`row` in posttrain's form, the name of its format); raises _Bad(field, problem).
+
+    Text rows pass unchanged. Conversational rows (TRL's formats) become:
+    - sft `messages` (a whole conversation ending with an assistant turn; every assistant turn trained) and
+      conversational sft `prompt` / `completion` (the completion's assistant turns trained): `messages` (the
+      whole conversation), `train_from` (index of the first trained message), `prompt` (the messages before
+      the last assistant turn) and `completion` (that turn's text: what generation is compared against).
+    - preference `prompt` / `chosen` / `rejected` with conversational sides: each side the text of its one
+      assistant message; the implicit-prompt form (no `prompt`; `chosen` and `rejected` whole conversations)
+      gets their shared leading messages as its prompt.
+    - any `prompt` that is a list of messages stays one (`posttrain.chat` renders it).
+    """
+    if not isinstance(row, dict):
+        return row, "text"
+    if columns:
+        row = _rename(row, columns)
+    if schema == "sft" and "messages" in row:
+        ours = isinstance(row.get("train_from"), int) and not isinstance(row["train_from"], bool)
+        if ("prompt" in row or "completion" in row) and not ours:
+            raise _Bad("messages", "a row has either 'messages' or 'prompt'/'completion', not both")
+        messages = _conversation(row, "messages")
+        if isinstance(messages, str):
+            raise _Bad("messages", "expected a list of messages, got text")
+        if messages[-1]["role"] != "assistant":
+            raise _Bad("messages", f"the conversation ends with a {messages[-1]['role']} turn; it must end with the "
+                                   "assistant reply that is trained on")
+        if len(messages) < 2:
+            raise _Bad("messages", "a single assistant message has no prompt; start the conversation with a user turn")
+        train_from = row["train_from"] if ours else 0  # a row saved in posttrain's form keeps its trained turns
+        if not 0 <= train_from < len(messages):
+            raise _Bad("train_from", f"{train_from} is not the index of a message (0-{len(messages) - 1})")
+        rest = {k: v for k, v in row.items() if k not in ("messages", "prompt", "completion", "train_from")}
+        return {**rest, "prompt": messages[:-1], "completion": messages[-1]["content"], "messages": messages,
+                "train_from": train_from}, "conversational (messages)" if train_from == 0 else "conversational"
+    if schema == "preference" and "prompt" not in row and all(
+            isinstance(row.get(f), list) for f in ("chosen", "rejected")):
+        chosen, rejected = _conversation(row, "chosen"), _conversation(row, "rejected")
+        shared = 0
+        while shared < min(len(chosen), len(rejected)) and chosen[shared] == rejected[shared]:
+            shared += 1
+        if shared == 0:
+            raise _Bad("chosen", "no prompt: 'chosen' and 'rejected' share no leading messages (the implicit prompt is "
+                                 "their common prefix); add a 'prompt' field or start both with the same turns")
+        prompt = chosen[:shared]
+        if prompt[-1]["role"] == "assistant":
+            raise _Bad("chosen", "the messages 'chosen' and 'rejected' share end with an assistant turn; the "
+                                 "implicit prompt must end with a user turn")
+        return {**row, "prompt": prompt, "chosen": _reply(chosen[shared:] or [], "chosen"),
+                "rejected": _reply(rejected[shared:] or [], "rejected")}, "conversational (implicit prompt)"
+    fields = TEXT_FIELDS[schema]
+    present = [f for f in fields if f in row and f in ("prompt", "completion", "chosen", "rejected")]
+    if not any(isinstance(row[f], list) for f in present):
+        return row, "text"
+    out = dict(row)
+    for f in present:
+        if not isinstance(row[f], (str, list)):
+            continue  # _row_problem names the wrong type
+        out[f] = _conversation(row, f, prompt=f == "prompt")
+    if schema == "sft" and "completion" in present and "prompt" in present:
+        completion = out["completion"]
+        completion = [{"role": "assistant", "content": completion}] if isinstance(completion, str) else completion
+        if completion[-1]["role"] != "assistant":
+            raise _Bad("completion", f"the completion ends with a {completion[-1]['role']} turn; it must end with an "
+                                     "assistant reply")
+        messages = _as_user(out["prompt"]) + completion
+        out.update(prompt=messages[:-1], completion=messages[-1]["content"], messages=messages,
+                   train_from=len(messages) - len(completion))
+    elif schema in ("preference", "unpaired"):
+        for f in ("chosen", "rejected", "completion"):
+            if f in present:
+                out[f] = _reply(out[f], f)
+    return out, "conversational"
+
+
+def normalized_row(row: Any, schema: Schema, source: str, number: int,
+                   columns: dict[str, str] | None = None) -> tuple[Any, str]:
+    """`normalize_row` with its problems as DataErrors naming `source` and row `number`."""
+    try:
+        return normalize_row(row, schema, columns)
+    except _Bad as e:
+        raise _error(source, number, (e.field, e.what)) from None
+
+
+class _Checker:
+    """Brings each row of one source into posttrain's form and checks it (DataError with source, row and field);
+    every row of a source must have the format of its first row."""
+
+    def __init__(self, schema: Schema, columns: dict[str, str] | None = None):
+        self.schema, self.columns = schema, columns or {}
+        self.format: str | None = None
+        self.first: int = 0
+
+    def __call__(self, row: Any, source: str, number: int) -> dict:
+        row, fmt = normalized_row(row, self.schema, source, number, self.columns)
+        problem = _row_problem(row, self.schema)
+        if problem:
+            raise _error(source, number, problem)
+        if self.format is None:
+            self.format, self.first = fmt, number
+        elif fmt != self.format:
+            raise DataError(f"{source}: row {number}: {fmt}, but row {self.first} is {self.format}; one format per "
+                            "source (convert the rows, or split the file)")
+        return row
+
+
 def _error(source: str, row_number: int, problem: tuple[str | None, str]) -> DataError:
     field, what = problem
     where = f"{source}: row {row_number}: "
@@ -125,17 +310,17 @@ def _error(source: str, row_number: int, problem: tuple[str | None, str]) -> Dat
 def validate_rows(rows: Iterable[dict], schema: Schema, source_name: str = "<rows>") -> None:
     """Raise DataError on the first invalid row (rows numbered from 1 by position)."""
     _check_schema(schema)
+    check = _Checker(schema)
     for number, row in enumerate(rows, start=1):
-        problem = _row_problem(row, schema)
-        if problem:
-            raise _error(source_name, number, problem)
+        check(row, source_name, number)
 
 
 # --- reading ------------------------------------------------------------------------------
 
 def _decode_stored(row: dict, source: str, number: int) -> dict:
-    """Turn `answer_json`/`meta_json` text columns (our storage layout) back into values."""
-    for name in JSON_FIELDS:
+    """Turn `answer_json`/`meta_json`/`prompt_json`/`messages_json` text columns (our storage layout) back into
+    values."""
+    for name in STORED_JSON:
         stored = f"{name}_json"
         if stored in row:
             text = row.pop(stored)
@@ -146,7 +331,7 @@ def _decode_stored(row: dict, source: str, number: int) -> dict:
     return row
 
 
-def _read_jsonl(path: Path, schema: Schema) -> Iterator[dict]:
+def _read_jsonl(path: Path, check: _Checker) -> Iterator[dict]:
     try:
         with path.open(encoding="utf-8") as f:
             for number, line in enumerate(f, start=1):
@@ -156,20 +341,17 @@ def _read_jsonl(path: Path, schema: Schema) -> Iterator[dict]:
                     row = json.loads(line.rstrip("\r\n"))  # so an error's column stays on this line
                 except json.JSONDecodeError as e:
                     raise DataError(f"{path}: row {number}: malformed JSON: {e.msg} (column {e.colno})") from None
-                problem = _row_problem(row, schema)
-                if problem:
-                    raise _error(str(path), number, problem)
-                yield row
+                yield check(row, str(path), number)
     except UnicodeDecodeError as e:
         raise DataError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
 
 
-def _read_json(path: Path, schema: Schema) -> Iterator[dict]:
+def _read_json(path: Path, check: _Checker) -> Iterator[dict]:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as e:
         if e.msg == "Extra data":  # several JSON values: JSON Lines under a .json name
-            yield from _read_jsonl(path, schema)
+            yield from _read_jsonl(path, check)
             return
         raise DataError(f"{path}: malformed JSON: {e.msg} (line {e.lineno}, column {e.colno})") from None
     except UnicodeDecodeError as e:
@@ -179,22 +361,15 @@ def _read_json(path: Path, schema: Schema) -> Iterator[dict]:
     if not isinstance(data, list):
         raise DataError(f"{path}: expected a JSON array of row objects (or JSON Lines), got {_json_type(data)}")
     for number, row in enumerate(data, start=1):
-        problem = _row_problem(row, schema)
-        if problem:
-            raise _error(str(path), number, problem)
-        yield row
+        yield check(row, str(path), number)
 
 
-def _read_table_rows(rows: list[dict], source: str, schema: Schema) -> Iterator[dict]:
+def _read_table_rows(rows: list[dict], source: str, check: _Checker) -> Iterator[dict]:
     for number, row in enumerate(rows, start=1):
-        row = _decode_stored(dict(row), source, number)
-        problem = _row_problem(row, schema)
-        if problem:
-            raise _error(source, number, problem)
-        yield row
+        yield check(_decode_stored(dict(row), source, number), source, number)
 
 
-def _read_parquet(path: Path, schema: Schema) -> Iterator[dict]:
+def _read_parquet(path: Path, check: _Checker) -> Iterator[dict]:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -202,10 +377,10 @@ def _read_parquet(path: Path, schema: Schema) -> Iterator[dict]:
         table = pq.read_table(path)
     except (pa.ArrowInvalid, OSError) as e:
         raise DataError(f"{path}: not a readable parquet file ({e})") from None
-    yield from _read_table_rows(table.to_pylist(), str(path), schema)
+    yield from _read_table_rows(table.to_pylist(), str(path), check)
 
 
-def _read_saved(path: Path, schema: Schema) -> Iterator[dict]:
+def _read_saved(path: Path, check: _Checker) -> Iterator[dict]:
     loaded = datasets.load_from_disk(str(path))
     if isinstance(loaded, datasets.DatasetDict):
         splits = list(loaded)
@@ -213,55 +388,65 @@ def _read_saved(path: Path, schema: Schema) -> Iterator[dict]:
             raise DataError(f"{path}: a DatasetDict with splits {', '.join(splits)}; "
                             f"point at one split directory, e.g. {path / splits[0]}")
         path, loaded = path / splits[0], loaded[splits[0]]
-    yield from _read_table_rows(loaded.with_format(None).to_list(), str(path), schema)
+    yield from _read_table_rows(loaded.with_format(None).to_list(), str(path), check)
 
 
-def _read_file(path: Path, schema: Schema) -> Iterator[dict]:
+def _read_file(path: Path, check: _Checker) -> Iterator[dict]:
     suffix = path.suffix.lower()
     if suffix == ".jsonl":
-        return _read_jsonl(path, schema)
+        return _read_jsonl(path, check)
     if suffix == ".json":
-        return _read_json(path, schema)
+        return _read_json(path, check)
     if suffix == ".parquet":
-        return _read_parquet(path, schema)
+        return _read_parquet(path, check)
     raise DataError(f"{path}: unsupported file type {path.suffix or '(no extension)'!r}; "
                     f"supported: {', '.join(LOAD_EXTENSIONS)}, or a dataset directory")
 
 
-def _read_rows(path: Path, schema: Schema) -> list[dict]:
+def _read_rows(path: Path, check: _Checker) -> list[dict]:
     if path.is_dir():
         if (path / "dataset_dict.json").exists() or (path / "state.json").exists():
-            rows = list(_read_saved(path, schema))
+            rows = list(_read_saved(path, check))
         else:
             files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in LOAD_EXTENSIONS)
             if not files:
                 raise DataError(f"{path}: directory holds no {', '.join(LOAD_EXTENSIONS)} files "
                                 "and is not a save_to_disk dataset")
-            rows = [row for f in files for row in _read_file(f, schema)]
+            rows = [row for f in files for row in _read_file(f, check)]
     else:
-        rows = list(_read_file(path, schema))
+        rows = list(_read_file(path, check))
     if not rows:
         raise DataError(f"{path}: no rows")
     return rows
 
 
+def read_raw(path: Path, schema: Schema, columns: dict[str, str] | None = None) -> tuple[list[dict], str]:
+    """The rows of a file or directory in posttrain's form, each checked, and their format (`normalize_row`)."""
+    check = _Checker(schema, columns)
+    rows = _read_rows(path, check)
+    return rows, check.format or "text"
+
+
 # --- the Dataset ------------------------------------------------------------------------------
 
 def _storage_rows(rows: Sequence[dict], fields: Sequence[str]) -> list[dict]:
-    """Rows as stored in Arrow: `fields` as they are, answer/meta (when any row has them) as JSON text."""
+    """Rows as stored in Arrow: `fields` as they are, answer/meta (when any row has them) and conversations
+    (a prompt or `messages` that is a list of messages) as JSON text."""
     json_fields = [name for name in JSON_FIELDS if any(name in row for row in rows)]
+    json_fields += [name for name in CONVERSATION_FIELDS if name in fields and name not in json_fields
+                    and any(isinstance(row.get(name), list) for row in rows)]
     return [
-        {**{f: row.get(f) for f in fields if f not in JSON_FIELDS},
+        {**{f: row.get(f) for f in fields if f not in json_fields},
          **{f"{name}_json": json.dumps(row.get(name), ensure_ascii=False) for name in json_fields}}
         for row in rows
     ]
 
 
 def _decode_batch(batch: dict[str, list]) -> dict[str, list]:
-    """Dataset transform: `answer_json`/`meta_json` text columns back to `answer`/`meta` values."""
+    """Dataset transform: `answer_json`/`meta_json`/... text columns back to `answer`/`meta`/... values."""
     out = {}
     for key, values in batch.items():
-        if key.endswith("_json") and key[: -len("_json")] in JSON_FIELDS:
+        if key.endswith("_json") and key[: -len("_json")] in STORED_JSON:
             out[key[: -len("_json")]] = [json.loads(v) for v in values]
         else:
             out[key] = values
@@ -269,21 +454,28 @@ def _decode_batch(batch: dict[str, list]) -> dict[str, list]:
 
 
 def to_dataset(rows: Sequence[dict], schema: Schema) -> datasets.Dataset:
-    """Validated rows -> an in-memory Dataset with the schema's fields (+ meta when present)."""
-    storage = _storage_rows(rows, TEXT_FIELDS[schema])
+    """Validated rows -> an in-memory Dataset with the schema's fields (+ meta when present; + messages and
+    train_from for conversational SFT rows)."""
+    fields = list(TEXT_FIELDS[schema]) + [f for f in SFT_CONVERSATION if any(f in row for row in rows)]
+    storage = _storage_rows(rows, fields)
     ds = datasets.Dataset.from_list(storage)
     if any(c.endswith("_json") for c in ds.column_names):
         ds = ds.with_transform(_decode_batch)
     return ds
 
 
-def load_rows(source: str | Path, schema: Schema) -> datasets.Dataset:
-    """Load and validate every row of `source` (see the module docstring for formats)."""
+def load_rows(source: str | Path, schema: Schema, columns: dict[str, str] | None = None,
+              say=None) -> datasets.Dataset:
+    """Load and validate every row of `source` (see the module docstring for formats). `columns`: {our field:
+    the source's column} for sources named otherwise (`task.columns`). `say`: told the source's format."""
     _check_schema(schema)
     path = Path(source)
     if not path.exists():
         raise DataError(f"{path}: no such file or directory")
-    rows = _read_rows(path, schema)
+    rows, fmt = read_raw(path, schema, columns)
+    if say is not None:
+        say(f"[data] {path}: {len(rows)} rows, {fmt} {'/'.join(TEXT_FIELDS[schema])}"
+            if fmt in ("text", "conversational") else f"[data] {path}: {len(rows)} rows, {fmt}")
     return to_dataset(rows, schema)
 
 
@@ -359,34 +551,43 @@ def clean_preference_rows(
 
 
 # ----------------------------------------------------------------------------- SFT rows as tokens
-def tokenize_completions(rows: list[dict], tokenizer, max_length: int) -> tuple[list[tuple[list[int], list[int]]], int]:
-    """SFT rows {"prompt", "completion"} -> [(prompt_ids, completion_ids + eos)] and the number of rows dropped
-    because prompt + completion exceeds `max_length`."""
+def tokenize_completions(rows: list[dict], tokenizer, max_length: int) -> tuple[list[tuple], int]:
+    """SFT rows -> token items and the number of rows dropped because they exceed `max_length`.
+
+    A text row {"prompt", "completion"} gives (prompt_ids, completion_ids + eos). A conversational row (its
+    `messages`, `normalize_row`) gives (prompt_ids, completion_ids, trained): the last assistant turn is the
+    completion, and `trained` lists the (start, end) token spans of earlier assistant turns that the loss
+    covers too (`posttrain.chat.encode_conversation`)."""
+    plain = [i for i, r in enumerate(rows) if "messages" not in r]
+    items: list[tuple | None] = [None] * len(rows)
     # Prompts rendered (chat template) and tokenized exactly as the rollout engine does (posttrain.chat).
-    prompts = encode_prompts(tokenizer, [r["prompt"] for r in rows])
-    comps = tokenizer([r["completion"] for r in rows], add_special_tokens=False)["input_ids"]
-    out, dropped = [], 0
-    for p, c in zip(prompts, comps):
-        c = c + [tokenizer.eos_token_id]
-        if len(p) + len(c) > max_length:
-            dropped += 1
-            continue
-        out.append((p, c))
-    return out, dropped
+    prompts = encode_prompts(tokenizer, [rows[i]["prompt"] for i in plain])
+    comps = tokenizer([rows[i]["completion"] for i in plain], add_special_tokens=False)["input_ids"] if plain else []
+    for i, p, c in zip(plain, prompts, comps):
+        items[i] = (p, c + [tokenizer.eos_token_id])
+    for i, r in enumerate(rows):
+        if items[i] is None:
+            p, c, trained = encode_conversation(tokenizer, r["messages"], r.get("train_from", 0))
+            items[i] = (p, c, trained) if trained else (p, c)
+    out = [x for x in items if len(x[0]) + len(x[1]) <= max_length]
+    return out, len(rows) - len(out)
 
 
-def collate_completions(pairs: list[tuple[list[int], list[int]]], pad_id: int) -> dict[str, torch.Tensor]:
-    """Right-padded batch of `tokenize_completions` pairs: input_ids, attention_mask, completion_mask, all (B, T)."""
-    T = max(len(p) + len(c) for p, c in pairs)
-    B = len(pairs)
+def collate_completions(items: list[tuple], pad_id: int) -> dict[str, torch.Tensor]:
+    """Right-padded batch of `tokenize_completions` items ((prompt, completion) or (prompt, completion,
+    trained)): input_ids, attention_mask, completion_mask (completion tokens and the trained spans), all (B, T)."""
+    T = max(len(x[0]) + len(x[1]) for x in items)
+    B = len(items)
     input_ids = torch.full((B, T), pad_id, dtype=torch.long)
     attention_mask = torch.zeros((B, T), dtype=torch.long)
     completion_mask = torch.zeros((B, T), dtype=torch.bool)
-    for i, (p, c) in enumerate(pairs):
+    for i, (p, c, *trained) in enumerate(items):
         n = len(p) + len(c)
         input_ids[i, :n] = torch.tensor(p + c)
         attention_mask[i, :n] = 1
         completion_mask[i, len(p):n] = True
+        for a, b in (trained[0] if trained else ()):
+            completion_mask[i, a:b] = True
     return {"input_ids": input_ids, "attention_mask": attention_mask, "completion_mask": completion_mask}
 
 

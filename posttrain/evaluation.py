@@ -14,6 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from posttrain.chat import prompt_text
+
 
 @dataclass
 class EvalConfig:
@@ -221,7 +223,7 @@ def compare_with_sft(stage: str, task_name: str, policy, reference, tokenizer, r
         f"({len(rows)} held-out prompts{counts}; ties count half)")
     return {"sft": {k: v for k, v in sft_m.items() if not k.startswith("_")},
             stage: {k: v for k, v in new_m.items() if not k.startswith("_")},
-            "samples": [{"prompt": r["prompt"][-200:], "sft": b, stage: c}
+            "samples": [{"prompt": prompt_text(r["prompt"])[-200:], "sft": b, stage: c}
                         for r, b, c in zip(rows[:10], base, new_m["_completions"])]}
 
 

@@ -51,7 +51,7 @@ PRESETS: dict[str, dict] = {
 
 
 def train_tokenizer(texts: Iterable[str], vocab_size: int = 1024, model_max_length: int = 512,
-                    split_digits: bool = False):
+                    split_digits: bool = False, chat: bool = False):
     """Train a byte-level BPE tokenizer on `texts` and wrap it as a PreTrainedTokenizerFast.
 
     Byte-level means any input string round-trips (no unknown token). Special tokens:
@@ -62,7 +62,12 @@ def train_tokenizer(texts: Iterable[str], vocab_size: int = 1024, model_max_leng
     before the byte-level one, as Llama and DeepSeek tokenizers do), so BPE never merges "47" or
     " 85" into one token. Arithmetic tasks need it: a tiny model learns digit-by-digit column
     arithmetic from single-digit tokens, not from ~1000 opaque number tokens.
+
+    `chat`: the role markers `<|system|>`, `<|user|>`, `<|assistant|>`, `<|tool|>` are special tokens too (ids
+    3-6) and the tokenizer carries `posttrain.chat.PRESET_CHAT_TEMPLATE`, for conversational data. Without it
+    the vocabulary is exactly what it was before chat templates existed.
     """
+    from posttrain.chat import PRESET_CHAT_TEMPLATE, ROLE_TOKENS
     from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
     from transformers import PreTrainedTokenizerFast
 
@@ -74,12 +79,12 @@ def train_tokenizer(texts: Iterable[str], vocab_size: int = 1024, model_max_leng
     trainer = trainers.BpeTrainer(
         vocab_size=vocab_size,
         min_frequency=2,
-        special_tokens=[PAD_TOKEN, EOS_TOKEN, BOS_TOKEN],
+        special_tokens=[PAD_TOKEN, EOS_TOKEN, BOS_TOKEN, *(ROLE_TOKENS if chat else ())],
         initial_alphabet=pre_tokenizers.ByteLevel.alphabet(),
         show_progress=False,
     )
     tok.train_from_iterator(list(texts), trainer=trainer)
-    return PreTrainedTokenizerFast(
+    wrapped = PreTrainedTokenizerFast(
         tokenizer_object=tok,
         pad_token=PAD_TOKEN,
         eos_token=EOS_TOKEN,
@@ -88,6 +93,9 @@ def train_tokenizer(texts: Iterable[str], vocab_size: int = 1024, model_max_leng
         padding_side="left",
         clean_up_tokenization_spaces=False,
     )
+    if chat:
+        wrapped.chat_template = PRESET_CHAT_TEMPLATE
+    return wrapped
 
 
 def build_model(preset: str, tokenizer, seed: int = 0, dtype: torch.dtype = torch.float32):
@@ -307,10 +315,11 @@ def count_parameters(model) -> int:
 
 
 def bootstrap(preset: str, corpus: Iterable[str], out_dir: str | os.PathLike, *, vocab_size: int = 1024,
-              seed: int = 0, max_length: int = 512, split_digits: bool = False):
-    """Build a tokenizer on `corpus` and a random `preset` model; save both to `out_dir`; return (model, tokenizer)."""
+              seed: int = 0, max_length: int = 512, split_digits: bool = False, chat: bool = False):
+    """Build a tokenizer on `corpus` (with a chat template when `chat`) and a random `preset` model; save both to
+    `out_dir`; return (model, tokenizer)."""
     tokenizer = train_tokenizer(corpus, vocab_size=vocab_size, model_max_length=max_length,
-                                split_digits=split_digits)
+                                split_digits=split_digits, chat=chat)
     model = build_model(preset, tokenizer, seed=seed)
     save_model(model, tokenizer, out_dir)
     return model, tokenizer

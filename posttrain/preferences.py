@@ -54,9 +54,9 @@ from typing import Any, Callable, Literal, Sequence
 import torch
 
 from posttrain import loop
-from posttrain.chat import encode_prompts
+from posttrain.chat import encode_prompts, is_conversation, prompt_key, prompt_text
 from posttrain.logprobs import masked_sum, packed_logprobs, sequence_logprobs
-from posttrain.data import DataError, collate_completions
+from posttrain.data import DataError, collate_completions, normalized_row
 
 PAIR_FIELDS = ("prompt", "chosen", "rejected")
 UNPAIRED_FIELDS = ("prompt", "completion", "label")  # TRL's unpaired preference format (KTO)
@@ -199,12 +199,15 @@ def _jsonable(key: Any) -> Any:
 
 
 # ----------------------------------------------------------------------------- reading and checking files
-def read_pairs(path: str | Path) -> list[dict]:
+def read_pairs(path: str | Path, columns: dict[str, str] | None = None) -> list[dict]:
     """Rows of a preference file (.jsonl / .json / .parquet), each with its 1-based row number in `_row`.
 
     Structure is checked here (a JSON object with text prompt/chosen/rejected, meta an object or
     null): a malformed file always raises DataError naming the file and row. Content problems
     (empty side, chosen == rejected, too long) are `check_pairs`' business, under `on_bad_rows`.
+    Conversational rows (TRL's formats: a prompt of messages, sides of one assistant message, or the
+    implicit-prompt form) are brought into posttrain's form by `posttrain.data.normalize_row`; `columns`
+    renames a file's columns (`task.columns`). One format per file.
     """
     p = Path(path)
     if not p.is_file():
@@ -236,12 +239,22 @@ def read_pairs(path: str | Path) -> list[dict]:
         raise DataError(f"{p}: unsupported preference file type {p.suffix or '(no extension)'!r}; "
                         "use .jsonl, .json or .parquet")
     rows = []
-    unpaired = isinstance(raw[0][1], dict) and "label" in raw[0][1] if raw else False  # the first row decides
+    columns = columns or {}
+    label = columns.get("label", "label")
+    unpaired = isinstance(raw[0][1], dict) and label in raw[0][1] if raw else False  # the first row decides
+    first_format = None
     for number, row in raw:
         if not isinstance(row, dict):
             raise DataError(f"{p}: row {number}: expected a JSON object with prompt, chosen, rejected")
-        if "meta_json" in row and "meta" not in row:  # parquet written by posttrain.data.save_rows
-            row = dict(row, meta=json.loads(row.pop("meta_json") or "null"))
+        for name in ("meta", "prompt"):  # parquet written by posttrain.data.save_rows
+            if f"{name}_json" in row and name not in row:
+                row = dict(row, **{name: json.loads(row.pop(f"{name}_json") or "null")})
+        row, fmt = normalized_row(row, "unpaired" if unpaired else "preference", str(p), number, columns)
+        if first_format is None:
+            first_format = (fmt, number)
+        elif fmt != first_format[0]:
+            raise DataError(f"{p}: row {number}: {fmt}, but row {first_format[1]} is {first_format[0]}; one format "
+                            "per file")
         if unpaired:
             rows.append(_unpaired_row(p, number, row))
             continue
@@ -251,7 +264,7 @@ def read_pairs(path: str | Path) -> list[dict]:
         for f in PAIR_FIELDS:
             if f not in row:
                 raise DataError(f"{p}: row {number}: field '{f}': missing")
-            if not isinstance(row[f], str):
+            if not isinstance(row[f], str) and not (f == "prompt" and is_conversation(row[f])):
                 raise DataError(f"{p}: row {number}: field '{f}': expected text, got {type(row[f]).__name__}")
         if row.get("meta") is not None and not isinstance(row["meta"], dict):
             raise DataError(f"{p}: row {number}: field 'meta': expected a JSON object or null")
@@ -269,7 +282,7 @@ def _unpaired_row(p: Path, number: int, row: dict) -> dict:
             raise DataError(f"{p}: row {number}: field '{f}': missing (an unpaired file's rows have prompt, "
                             "completion, label)")
     for f in ("prompt", "completion"):
-        if not isinstance(row[f], str):
+        if not isinstance(row[f], str) and not (f == "prompt" and is_conversation(row[f])):
             raise DataError(f"{p}: row {number}: field '{f}': expected text, got {type(row[f]).__name__}")
     if not isinstance(row["label"], bool):
         raise DataError(f"{p}: row {number}: field 'label': expected true or false, got {row['label']!r}")
@@ -306,16 +319,17 @@ def check_unpaired(rows: list[dict], source: str, on_bad: Literal["error", "skip
     hint = " (set on_bad_rows=skip to drop such rows)"
     ok = []
     for row in rows:
-        empty = [f for f in UNPAIRED_FIELDS[:2] if not row[f].strip()]
+        empty = [f for f in UNPAIRED_FIELDS[:2] if not prompt_text(row[f]).strip()]
         if empty:
             if on_bad == "error":
                 raise DataError(f"{source}: row {row['_row']}: field '{empty[0]}': empty text{hint}")
             bad.add("empty", row["_row"])
         else:
             ok.append(row)
-    if len({r["prompt"] for r in ok}) < 2:
+    distinct = len({prompt_key(r["prompt"]) for r in ok})
+    if distinct < 2:
         raise DataError(f"{source}: KTO needs at least two distinct prompts (its KL reference point pairs each prompt "
-                        f"with another prompt's completion); got {len({r['prompt'] for r in ok})}")
+                        f"with another prompt's completion); got {distinct}")
     n = len(ok)
     partner = []
     for i, r in enumerate(ok):
@@ -395,7 +409,7 @@ def check_pairs(rows: list[dict], source: str, on_bad: Literal["error", "skip"],
 
     ok: list[dict] = []
     for row in rows:
-        empty = [f for f in PAIR_FIELDS if not row[f].strip()]
+        empty = [f for f in PAIR_FIELDS if not prompt_text(row[f]).strip()]
         if empty:
             reject(row, "empty", f"field '{empty[0]}': empty text")
         elif row["chosen"].strip() == row["rejected"].strip():
@@ -421,21 +435,21 @@ def check_pairs(rows: list[dict], source: str, on_bad: Literal["error", "skip"],
 
 def load_pairs(train_file: str, eval_file: str | None, on_bad: Literal["error", "skip"] | None, *,
                eval_fraction: float = 0.05, seed: int = 0, say: Callable[[str], None] = print,
-               tag: str = "[prefs]") -> tuple[list[dict], list[dict]]:
+               tag: str = "[prefs]", columns: dict[str, str] | None = None) -> tuple[list[dict], list[dict]]:
     """(train rows, eval rows) from user files.
 
     `on_bad`: check the rows here (no tokenizer, so not their length) with that policy; None
     leaves all checks to the caller (trainers run `check_pairs` with their tokenizer, so one
     report covers every kind of bad row). Without an eval file a seeded `eval_fraction` of the
-    train rows is held out (at least one row); rows keep their row numbers in `_row`.
+    train rows is held out (at least one row); rows keep their row numbers in `_row`. `columns`: `task.columns`.
     """
-    train = read_pairs(train_file)
+    train = read_pairs(train_file, columns)
     if on_bad is not None:
         train, _, bad = check_pairs(train, str(train_file), on_bad)
         if bad.count:
             say(f"{tag} {bad.summary()}")
     if eval_file:
-        ev = read_pairs(eval_file)
+        ev = read_pairs(eval_file, columns)
         if on_bad is not None:
             ev, _, bad = check_pairs(ev, str(eval_file), on_bad)
             if bad.count:
@@ -458,17 +472,17 @@ def read_stage_pairs(prefs_dir: Path) -> tuple[list[dict], list[dict]]:
     return train, ev
 
 
-def training_pairs(ensure, train_file: str | None, eval_file: str | None, *, seed: int = 0
-                   ) -> tuple[list[dict], list[dict], str, str]:
+def training_pairs(ensure, train_file: str | None, eval_file: str | None, *, seed: int = 0,
+                   columns: dict[str, str] | None = None) -> tuple[list[dict], list[dict], str, str]:
     """(train rows, eval rows, train source, eval source) for a trainer, unchecked (the trainer runs
     `check_pairs` with its tokenizer): a user file, or the prefs stage output (built if missing)."""
     if train_file:
-        train, ev = load_pairs(train_file, eval_file, None, seed=seed)
+        train, ev = load_pairs(train_file, eval_file, None, seed=seed, columns=columns)
         return train, ev, str(train_file), str(eval_file or train_file)
     prefs_dir = Path(ensure("prefs"))
     train, ev = read_stage_pairs(prefs_dir)
     if eval_file:
-        ev = read_pairs(eval_file)
+        ev = read_pairs(eval_file, columns)
     return train, ev, str(prefs_dir / "train.jsonl"), str(eval_file or prefs_dir / "eval.jsonl")
 
 
@@ -544,7 +558,8 @@ def train(res, ensure) -> Path:
     run_dir = res.stage_dir()
     if cfg.train_file:
         train_rows, eval_rows = load_pairs(cfg.train_file, cfg.eval_file, cfg.on_bad_rows,
-                                           eval_fraction=cfg.eval_fraction, seed=cfg.seed)
+                                           eval_fraction=cfg.eval_fraction, seed=cfg.seed,
+                                           columns=res.task.columns.mapping())
         stats: dict[str, Any] = {"source": "file", "train_file": cfg.train_file, "eval_file": cfg.eval_file}
         accelerator = loop.setup(cfg.seed, res.run.threads)
         say = loop.main_printer(accelerator)

@@ -34,7 +34,7 @@ PREFLIGHT_ROWS = 8  # worked solutions scored before training (a broken verifier
 class Problem:
     """One prompt with its verifier reference; `key` (its row index) seeds its samples."""
 
-    prompt: str
+    prompt: str | list[dict]  # text or a conversation (posttrain.chat)
     reference: Any
     key: int
     prompt_ids: list[int] = field(default_factory=list)
@@ -124,7 +124,7 @@ def split_rows(task_cfg, split: str, file: str | None, schema: str = "verifiable
     from posttrain.data import load_rows
 
     if file:
-        return [dict(r) for r in load_rows(file, schema)], file
+        return [dict(r) for r in load_rows(file, schema, tasks.columns(task_cfg), say=print)], file
     return tasks.load_split(task_cfg, split), f"task {task_cfg.name} ({split})"
 
 

@@ -8,7 +8,7 @@ from typing import Callable, Sequence
 
 import torch
 
-from ..chat import encode_prompts
+from ..chat import encode_prompts, is_conversation
 from ..models import unwrap_model, weights_signature
 from ..runtime import tune_malloc
 from ..lean.decode import LeanLlama
@@ -96,10 +96,10 @@ def select_backend(model, max_len: int = 0, backend: str = "auto", dtype: str | 
 def _tokenize(tokenizer, prompts) -> tuple[list[list[int]], list[str | None]]:
     ids: list[list[int] | None] = [None] * len(prompts)
     texts: list[str | None] = [None] * len(prompts)
-    str_pos = [i for i, p in enumerate(prompts) if isinstance(p, str)]
+    str_pos = [i for i, p in enumerate(prompts) if isinstance(p, str) or is_conversation(p)]
     if str_pos:
         if tokenizer is None:
-            raise ValueError("generate: prompts are strings but no tokenizer was given")
+            raise ValueError("generate: prompts are strings (or conversations) but no tokenizer was given")
         enc = encode_prompts(tokenizer, [prompts[i] for i in str_pos])  # chat template when it has one
         for i, e in zip(str_pos, enc):
             ids[i], texts[i] = list(e), prompts[i]
@@ -108,7 +108,7 @@ def _tokenize(tokenizer, prompts) -> tuple[list[list[int]], list[str | None]]:
             if isinstance(p, torch.Tensor):
                 p = p.tolist()
             if not isinstance(p, (list, tuple)) or not all(isinstance(x, int) and not isinstance(x, bool) for x in p):
-                raise ValueError(f"generate: prompt {i} must be a string or a list of token ids, "
+                raise ValueError(f"generate: prompt {i} must be a string, a conversation or a list of token ids, "
                                  f"got {type(p).__name__}")
             ids[i] = list(p)
     return ids, texts  # type: ignore[return-value]

@@ -37,6 +37,7 @@ from typing import Any, Sequence
 
 import torch
 
+from ..chat import prompt_text
 from .sampling import find_stop
 
 FINISH_REASONS = ("eos", "stop", "length")
@@ -54,7 +55,7 @@ class Rollout:
     text: str  # decoded completion (special tokens skipped; stop string excluded unless include_stop)
     prompt_index: int  # position of the prompt in the generate() call
     sample_index: int  # 0 .. n-1 among the samples of that prompt
-    prompt: str | None = None  # prompt text when the prompt was given as a string
+    prompt: "str | list[dict] | None" = None  # the prompt when given as text or a conversation (posttrain.chat)
     completion_mask: list[int] = field(default_factory=list)  # 1 per completion token; trainers may zero some
     reward: float | None = None
     extras: dict[str, Any] = field(default_factory=dict)  # verifier details etc.; JSON-serialisable
@@ -206,7 +207,7 @@ def table_rows(rollouts: Sequence[Rollout]) -> list[dict[str, Any]]:
     rows = []
     for r in rollouts:
         ex = r.extras or {}
-        rows.append({"prompt": r.prompt, "completion": r.text, "reward": r.reward, "advantage": ex.get("advantage"),
+        rows.append({"prompt": prompt_text(r.prompt) if r.prompt else r.prompt, "completion": r.text, "reward": r.reward, "advantage": ex.get("advantage"),
                      "reason": ex.get("reason"), "parts": json.dumps(ex.get("parts", {}), sort_keys=True),
                      "length": len(r.completion_ids), "finish_reason": r.finish_reason,
                      "prompt_index": r.prompt_index, "sample_index": r.sample_index})

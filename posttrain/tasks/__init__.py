@@ -94,7 +94,7 @@ def load_split(task_cfg, split: str) -> list[dict]:
 
     file = task_cfg.train_file if split == "train" else task_cfg.eval_file
     if file:
-        return [dict(r) for r in load_rows(file, "sft")]
+        return [dict(r) for r in load_rows(file, "sft", columns(task_cfg), say=print)]
     task = _task_or_config_error(task_cfg.name)
     n = task_cfg.n_train if split == "train" else task_cfg.n_eval
     rows = task.make_examples(n, task_cfg.seed, split, **difficulty_kwargs(task, task_cfg))
@@ -121,9 +121,22 @@ def difficulty_kwargs(task: Task, task_cfg) -> dict[str, int]:
     return {"difficulty": level}
 
 
+def columns(task_cfg) -> dict[str, str]:
+    """`task.columns` as {posttrain's field: the data's column} (posttrain.data.load_rows)."""
+    cols = getattr(task_cfg, "columns", None)
+    return cols.mapping() if cols is not None else {}
+
+
 def tokenizer_corpus(task_cfg) -> list[str]:
-    """Texts to train a tokenizer on: the training file's prompts and completions, or the task's corpus."""
+    """Texts to train a tokenizer on: the training file's prompts and completions (every message of a
+    conversation), or the task's corpus."""
     if task_cfg.train_file:
         rows = load_split(task_cfg, "train")
-        return [r["prompt"] + r["completion"] for r in rows]
+        return ["\n".join(m["content"] for m in r["messages"]) if "messages" in r else r["prompt"] + r["completion"]
+                for r in rows]
     return _task_or_config_error(task_cfg.name).corpus(task_cfg.n_train, task_cfg.seed)
+
+
+def is_conversational(task_cfg) -> bool:
+    """The recipe's training file holds conversations (a preset built for it gets a chat template)."""
+    return bool(task_cfg.train_file) and any("messages" in r for r in load_split(task_cfg, "train")[:1])

@@ -225,7 +225,8 @@ class PairData:
 def load_pairs(res: Resolved, ensure, cfg: DPOConfig) -> tuple[PairData, Path, Any]:
     """(data, SFT model dir, tokenizer). on_bad_rows=error: a bad row stops before SFT may have to run."""
     train_rows, eval_rows, source, eval_source = preferences.training_pairs(ensure, cfg.train_file, cfg.eval_file,
-                                                                           seed=cfg.seed)
+                                                                           seed=cfg.seed,
+                                                                           columns=res.task.columns.mapping())
     kto = cfg.loss_type == "kto"
     if cfg.on_bad_rows == "error" and not kto:  # fail fast on what needs no tokenizer
         preferences.check_pairs(train_rows, source, "error")

@@ -109,7 +109,8 @@ def train(res: Resolved, ensure) -> Path:
     run_dir = res.stage_dir()
     # Data first: a bad row stops the run before the run dir changes.
     train_rows, eval_rows, source, eval_source = preferences.training_pairs(ensure, cfg.train_file, cfg.eval_file,
-                                                                            seed=cfg.seed)
+                                                                            seed=cfg.seed,
+                                                                            columns=res.task.columns.mapping())
     if cfg.on_bad_rows == "error":  # fail fast on what needs no tokenizer, before SFT may have to run
         preferences.check_pairs(train_rows, source, "error")
         preferences.check_pairs(eval_rows[: cfg.eval_pairs], eval_source, "error")

@@ -20,6 +20,9 @@ Details:
 - Prompts go through the model's chat template when its tokenizer has one (`posttrain.chat`:
   a local instruct checkpoint as model.path); the eos appended to completions is then its
   end-of-turn token (e.g. Qwen's <|im_end|>).
+- Conversational rows (`data.normalize_row`): a `messages` row trains every assistant turn, a conversational
+  prompt/completion row its completion's; the turns are located in the chat template's rendering
+  (`chat.encode_conversation`), each trained through its eos, and the rest of the conversation is prompt.
 - Rows longer than model.max_length are dropped with a count (never silently truncated:
   a truncated completion would teach the model to stop without eos).
 - Log-probs come from `posttrain.logprobs` (the single implementation); samples and the
@@ -35,6 +38,7 @@ from typing import Literal
 import torch
 
 from posttrain import loop
+from posttrain.chat import prompt_text
 from posttrain.config import Resolved
 from posttrain.data import collate_completions, tokenize_completions
 from posttrain.logprobs import nll_sum, token_weights
@@ -86,9 +90,9 @@ class SFTConfig:
 
 
 def micro_groups(pairs, micro_batch_size: int, max_tokens: int) -> list[list]:
-    """(prompt, completion) token pairs in micro-batches of at most `micro_batch_size` rows and `max_tokens`
+    """`data.tokenize_completions` items in micro-batches of at most `micro_batch_size` rows and `max_tokens`
     padded tokens (`loop.token_groups`)."""
-    groups = loop.token_groups([(0, len(p) + len(c)) for p, c in pairs], micro_batch_size, max_tokens)
+    groups = loop.token_groups([(0, len(x[0]) + len(x[1])) for x in pairs], micro_batch_size, max_tokens)
     return [[pairs[i] for i in g] for g in groups]
 
 
@@ -175,7 +179,7 @@ def train(res: Resolved, ensure) -> Path:
                 outs = evaluation.complete(accelerator.unwrap_model(model), tokenizer, [r["prompt"] for r in show],
                                            max_new_tokens=cfg.max_new_tokens)
                 for r, o in zip(show, outs):
-                    say(f"    prompt: ...{r['prompt'][-60:]!r}\n    sample: {o!r}")
+                    say(f"    prompt: ...{prompt_text(r['prompt'])[-60:]!r}\n    sample: {o!r}")
         if (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps:
             ckpt.save(done, model, optimizer, scheduler, {"step": done})
 

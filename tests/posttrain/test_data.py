@@ -133,7 +133,7 @@ def test_bad_sft_row_gives_one_line_with_file_row_field(tmp_path, bad_line, expe
     [
         ({"prompt": "p", "chosen": " a"}, "field 'rejected': missing"),
         ({"prompt": "p", "chosen": "", "rejected": " b"}, "field 'chosen': empty text"),
-        ({"prompt": "p", "chosen": ["a"], "rejected": " b"}, "field 'chosen': expected text, got list"),
+        ({"prompt": "p", "chosen": ["a"], "rejected": " b"}, "field 'chosen': message 1: expected an object with 'role' and 'content', got str"),
     ],
 )
 def test_bad_preference_row(tmp_path, row, expected):

@@ -87,6 +87,32 @@ def test_rendered_prompts_carry_the_template_exactly_once(loaded):
     assert prompt == ids and tok.decode(completion) == "12<|im_end|>"
 
 
+def test_multi_turn_conversation_trains_the_assistant_turns_only(loaded):
+    """SmolLM2's ChatML template (a default system prompt, a newline after each <|im_end|>): the SFT mask of a
+    two-exchange conversation covers exactly the two replies and their <|im_end|>."""
+    from posttrain.chat import encode_prompts
+    from posttrain.data import collate_completions, normalize_row, tokenize_completions
+
+    _, tok = loaded
+    messages = [{"role": "user", "content": "What is 2 + 2?"}, {"role": "assistant", "content": "4"},
+                {"role": "user", "content": "And 7 + 5?"}, {"role": "assistant", "content": "It is 12."}]
+    row, _ = normalize_row({"messages": messages}, "sft")
+    (item,), _ = tokenize_completions([row], tok, 256)
+    batch = collate_completions([item], tok.pad_token_id)
+    ids, trained = batch["input_ids"][0], batch["completion_mask"][0]
+    assert tok.decode(ids) == tok.apply_chat_template(messages, tokenize=False).rstrip("\n")
+    runs, cur = [], []
+    for t, m in zip(ids.tolist(), trained.tolist()):
+        if m:
+            cur.append(t)
+        elif cur:
+            runs.append(tok.decode(cur))
+            cur = []
+    runs.append(tok.decode(cur))
+    assert runs == ["4<|im_end|>", "It is 12.<|im_end|>"]
+    assert item[0] == encode_prompts(tok, [messages[:-1]])[0]  # the prompt as generation renders it
+
+
 def test_engine_greedy_equals_model_generate_token_for_token(loaded):
     from posttrain.chat import encode_prompts
     from posttrain.rollout import generate
