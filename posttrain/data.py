@@ -53,7 +53,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Literal, Sequence
 
@@ -230,8 +232,9 @@ def normalize_row(row: Any, schema: Schema, columns: dict[str, str] | None = Non
         rest = {k: v for k, v in row.items() if k not in ("messages", "prompt", "completion", "train_from")}
         return {**rest, "prompt": messages[:-1], "completion": messages[-1]["content"], "messages": messages,
                 "train_from": train_from}, "conversational (messages)" if train_from == 0 else "conversational"
-    if schema == "preference" and "prompt" not in row and all(
-            isinstance(row.get(f), list) for f in ("chosen", "rejected")):
+    if schema == "preference" and all(isinstance(row.get(f), list) for f in ("chosen", "rejected")) and (
+            "prompt" not in row or any(m.get("role") != "assistant" for m in row["chosen"][:1] if isinstance(m, dict))):
+        # the implicit prompt (TRL), also when a `prompt` repeats it (HuggingFaceH4/ultrafeedback_binarized)
         chosen, rejected = _conversation(row, "chosen"), _conversation(row, "rejected")
         shared = 0
         while shared < min(len(chosen), len(rejected)) and chosen[shared] == rejected[shared]:
@@ -243,6 +246,10 @@ def normalize_row(row: Any, schema: Schema, columns: dict[str, str] | None = Non
         if prompt[-1]["role"] == "assistant":
             raise _Bad("chosen", "the messages 'chosen' and 'rejected' share end with an assistant turn; the "
                                  "implicit prompt must end with a user turn")
+        given = row.get("prompt")
+        if given is not None and given != prompt and not (isinstance(given, str) and given == prompt[-1]["content"]):
+            raise _Bad("prompt", "differs from the turns 'chosen' and 'rejected' share (their implicit prompt); drop "
+                                 "it or make the conversations start with it")
         return {**row, "prompt": prompt, "chosen": _reply(chosen[shared:] or [], "chosen"),
                 "rejected": _reply(rejected[shared:] or [], "rejected")}, "conversational (implicit prompt)"
     fields = TEXT_FIELDS[schema]
@@ -420,11 +427,82 @@ def _read_rows(path: Path, check: _Checker) -> list[dict]:
     return rows
 
 
-def read_raw(path: Path, schema: Schema, columns: dict[str, str] | None = None) -> tuple[list[dict], str]:
-    """The rows of a file or directory in posttrain's form, each checked, and their format (`normalize_row`)."""
+# --- hub datasets -----------------------------------------------------------------------------------
+
+HUB_OPTIONS = ("split", "subset", "revision")
+_HUB_NAME = re.compile(r"[A-Za-z0-9][\w.-]*/[\w.-]+")
+
+
+@dataclass(frozen=True)
+class HubSource:
+    """A Hugging Face hub dataset named as a source: `org/name`, or `org/name,split=S,subset=C,revision=R`."""
+
+    name: str
+    split: str
+    subset: str | None = None
+    revision: str | None = None
+
+
+def hub_source(source: str | Path, default_split: str = "train") -> HubSource | None:
+    """The hub dataset `source` names, or None when it is a local path (an existing file or directory, or a
+    name that is not `org/name`). `default_split`: the split when none is given (train files: "train",
+    eval files: "test")."""
+    text = str(source)
+    if Path(text).exists():
+        return None
+    name, *options = text.split(",")
+    if not _HUB_NAME.fullmatch(name) or Path(name).suffix.lower() in LOAD_EXTENSIONS:
+        return None
+    given: dict[str, str] = {}
+    for option in options:
+        key, sep, value = option.partition("=")
+        if not sep or key not in HUB_OPTIONS or not value:
+            raise DataError(f"{text}: option {option!r} of a hub dataset: expected split=NAME, subset=NAME or "
+                            "revision=REF (e.g. trl-lib/Capybara,split=test)")
+        given[key] = value
+    return HubSource(name, given.get("split", default_split), given.get("subset"), given.get("revision"))
+
+
+def hub_rows(hub: HubSource, source: str) -> list[dict]:
+    """The rows of a hub dataset's split through `datasets.load_dataset`: from the Hub when it can be reached,
+    else (HF_HUB_OFFLINE=1 / HF_DATASETS_OFFLINE=1, or no network) from the local Hugging Face datasets cache;
+    one DataError line when it is in neither."""
+    import logging
+
+    level = logging.getLogger("datasets").level
+    logging.getLogger("datasets").setLevel(logging.ERROR)  # "Using the latest cached version ...": said below
+    try:
+        ds = datasets.load_dataset(hub.name, hub.subset, split=hub.split, revision=hub.revision)
+    except (ConnectionError, FileNotFoundError) as e:
+        from datasets import config
+
+        offline = " (offline mode is on: HF_HUB_OFFLINE / HF_DATASETS_OFFLINE)" if config.HF_HUB_OFFLINE else ""
+        raise DataError(f"{source}: no such local file or directory, and the Hugging Face hub dataset {hub.name!r} is "
+                        f"neither in the local datasets cache ({config.HF_DATASETS_CACHE}) nor reachable{offline}; "
+                        "load it once with network access, or give a local file") from None
+    except Exception as e:  # noqa: BLE001 - unknown split / subset, a gated or missing repo: the library says which
+        raise DataError(f"{source}: hub dataset {hub.name!r}: {' '.join(str(e).split())}") from None
+    finally:
+        logging.getLogger("datasets").setLevel(level)
+    return ds.to_list()
+
+
+def read_raw(source: str | Path, schema: Schema, columns: dict[str, str] | None = None,
+             split: str = "train") -> tuple[list[dict], str, str]:
+    """The rows of a file, directory or hub dataset in posttrain's form, each checked; their format
+    (`normalize_row`); and where they came from (the hub split when it is one)."""
     check = _Checker(schema, columns)
-    rows = _read_rows(path, check)
-    return rows, check.format or "text"
+    hub = hub_source(source, split)
+    if hub is not None:
+        rows = list(_read_table_rows(hub_rows(hub, str(source)), str(source), check))
+        if not rows:
+            raise DataError(f"{source}: no rows in split {hub.split!r}")
+        where = f"{hub.name} (hub, split {hub.split}{f', subset {hub.subset}' if hub.subset else ''})"
+        return rows, check.format or "text", where
+    path = Path(source)
+    if not path.exists():
+        raise DataError(f"{path}: no such file or directory")
+    return _read_rows(path, check), check.format or "text", str(path)
 
 
 # --- the Dataset ------------------------------------------------------------------------------
@@ -465,17 +543,15 @@ def to_dataset(rows: Sequence[dict], schema: Schema) -> datasets.Dataset:
 
 
 def load_rows(source: str | Path, schema: Schema, columns: dict[str, str] | None = None,
-              say=None) -> datasets.Dataset:
-    """Load and validate every row of `source` (see the module docstring for formats). `columns`: {our field:
-    the source's column} for sources named otherwise (`task.columns`). `say`: told the source's format."""
+              say=None, split: str = "train") -> datasets.Dataset:
+    """Load and validate every row of `source` (see the module docstring for formats; `org/name[,options]`: a
+    hub dataset, `hub_source`). `columns`: {our field: the source's column} for sources named otherwise
+    (`task.columns`). `say`: told the source's format. `split`: a hub dataset's split when it names none."""
     _check_schema(schema)
-    path = Path(source)
-    if not path.exists():
-        raise DataError(f"{path}: no such file or directory")
-    rows, fmt = read_raw(path, schema, columns)
+    rows, fmt, where = read_raw(source, schema, columns, split)
     if say is not None:
-        say(f"[data] {path}: {len(rows)} rows, {fmt} {'/'.join(TEXT_FIELDS[schema])}"
-            if fmt in ("text", "conversational") else f"[data] {path}: {len(rows)} rows, {fmt}")
+        say(f"[data] {where}: {len(rows)} rows, {fmt} {'/'.join(TEXT_FIELDS[schema])}"
+            if fmt in ("text", "conversational") else f"[data] {where}: {len(rows)} rows, {fmt}")
     return to_dataset(rows, schema)
 
 

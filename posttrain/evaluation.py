@@ -42,16 +42,41 @@ def complete(model, tokenizer, prompts: list[str], *, max_new_tokens: int = 64, 
 
 def evaluate_model(task_name: str, model, tokenizer, rows: list[dict[str, Any]], *, max_new_tokens: int = 64,
                    completions: list[str] | None = None) -> dict[str, Any]:
-    """The task's metrics of greedy completions on `rows` (which carry `meta`)."""
+    """The task's metrics of greedy completions on `rows` (which carry `meta`); rows without the task's meta (a
+    user's own data) get `reference_metrics` against their reference completions instead."""
     from posttrain import tasks
 
     task = tasks.get_task(task_name)
     if completions is None:
         completions = complete(model, tokenizer, [r["prompt"] for r in rows], max_new_tokens=max_new_tokens)
-    out = dict(task.evaluate([r["meta"] for r in rows], completions))
+    if all(r.get("meta") for r in rows):
+        out = dict(task.evaluate([r["meta"] for r in rows], completions))
+    else:
+        out = reference_metrics([str(r.get("completion", "")) for r in rows], completions)
     out["n"] = len(rows)
     out["_completions"] = completions
     return out
+
+
+def reference_metrics(references: list[str], completions: list[str]) -> dict[str, float]:
+    """Task-free metrics of completions against reference completions: exact match and word-level F1 (after
+    lower-casing and splitting on whitespace, SQuAD's F1 without its article and punctuation rules), mean
+    length in words and the fraction of empty completions."""
+    def f1(ref: str, out: str) -> float:
+        r, o = ref.lower().split(), out.lower().split()
+        if not r or not o:
+            return float(r == o)
+        common = sum(min(r.count(w), o.count(w)) for w in set(o))
+        if not common:
+            return 0.0
+        precision, recall = common / len(o), common / len(r)
+        return 2 * precision * recall / (precision + recall)
+
+    n = max(1, len(completions))
+    return {"exact_match": sum(" ".join(r.split()) == " ".join(c.split()) for r, c in zip(references, completions)) / n,
+            "word_f1": sum(f1(r, c) for r, c in zip(references, completions)) / n,
+            "mean_length": sum(len(c.split()) for c in completions) / n,
+            "frac_empty": sum(not c.strip() for c in completions) / n}
 
 
 def win_rate(task_name: str, rows: list[dict[str, Any]], candidates: list[str], baselines: list[str]) -> float:

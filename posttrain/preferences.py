@@ -56,7 +56,7 @@ import torch
 from posttrain import loop
 from posttrain.chat import encode_prompts, is_conversation, prompt_key, prompt_text
 from posttrain.logprobs import masked_sum, packed_logprobs, sequence_logprobs
-from posttrain.data import DataError, collate_completions, normalized_row
+from posttrain.data import DataError, collate_completions, hub_rows, hub_source, normalized_row
 
 PAIR_FIELDS = ("prompt", "chosen", "rejected")
 UNPAIRED_FIELDS = ("prompt", "completion", "label")  # TRL's unpaired preference format (KTO)
@@ -199,17 +199,8 @@ def _jsonable(key: Any) -> Any:
 
 
 # ----------------------------------------------------------------------------- reading and checking files
-def read_pairs(path: str | Path, columns: dict[str, str] | None = None) -> list[dict]:
-    """Rows of a preference file (.jsonl / .json / .parquet), each with its 1-based row number in `_row`.
-
-    Structure is checked here (a JSON object with text prompt/chosen/rejected, meta an object or
-    null): a malformed file always raises DataError naming the file and row. Content problems
-    (empty side, chosen == rejected, too long) are `check_pairs`' business, under `on_bad_rows`.
-    Conversational rows (TRL's formats: a prompt of messages, sides of one assistant message, or the
-    implicit-prompt form) are brought into posttrain's form by `posttrain.data.normalize_row`; `columns`
-    renames a file's columns (`task.columns`). One format per file.
-    """
-    p = Path(path)
+def _read_pair_file(p: Path) -> list[tuple[int, Any]]:
+    """(row number, raw row) of a local preference file."""
     if not p.is_file():
         raise DataError(f"{p}: no such preference file (give a .jsonl, .json or .parquet file)")
     suffix = p.suffix.lower()
@@ -238,6 +229,28 @@ def read_pairs(path: str | Path, columns: dict[str, str] | None = None) -> list[
     else:
         raise DataError(f"{p}: unsupported preference file type {p.suffix or '(no extension)'!r}; "
                         "use .jsonl, .json or .parquet")
+    return raw
+
+
+def read_pairs(path: str | Path, columns: dict[str, str] | None = None, split: str = "train") -> list[dict]:
+    """Rows of a preference file (.jsonl / .json / .parquet), each with its 1-based row number in `_row`.
+
+    Structure is checked here (a JSON object with text prompt/chosen/rejected, meta an object or
+    null): a malformed file always raises DataError naming the file and row. Content problems
+    (empty side, chosen == rejected, too long) are `check_pairs`' business, under `on_bad_rows`.
+    Conversational rows (TRL's formats: a prompt of messages, sides of one assistant message, or the
+    implicit-prompt form) are brought into posttrain's form by `posttrain.data.normalize_row`; `columns`
+    renames a file's columns (`task.columns`). One format per file. `org/name[,split=...]` reads a Hugging Face
+    hub dataset (`posttrain.data.hub_source`; `split` when it names none).
+    """
+    hub = hub_source(path, split)
+    p = Path(path)
+    if hub is not None:
+        raw = list(enumerate(hub_rows(hub, str(path)), start=1))
+        if not raw:
+            raise DataError(f"{path}: no rows in split {hub.split!r}")
+    else:
+        raw = _read_pair_file(p)
     rows = []
     columns = columns or {}
     label = columns.get("label", "label")
@@ -449,7 +462,7 @@ def load_pairs(train_file: str, eval_file: str | None, on_bad: Literal["error", 
         if bad.count:
             say(f"{tag} {bad.summary()}")
     if eval_file:
-        ev = read_pairs(eval_file, columns)
+        ev = read_pairs(eval_file, columns, split="test")
         if on_bad is not None:
             ev, _, bad = check_pairs(ev, str(eval_file), on_bad)
             if bad.count:
@@ -482,7 +495,7 @@ def training_pairs(ensure, train_file: str | None, eval_file: str | None, *, see
     prefs_dir = Path(ensure("prefs"))
     train, ev = read_stage_pairs(prefs_dir)
     if eval_file:
-        ev = read_pairs(eval_file, columns)
+        ev = read_pairs(eval_file, columns, split="test")
     return train, ev, str(prefs_dir / "train.jsonl"), str(eval_file or prefs_dir / "eval.jsonl")
 
 

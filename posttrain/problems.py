@@ -124,7 +124,8 @@ def split_rows(task_cfg, split: str, file: str | None, schema: str = "verifiable
     from posttrain.data import load_rows
 
     if file:
-        return [dict(r) for r in load_rows(file, schema, tasks.columns(task_cfg), say=print)], file
+        return [dict(r) for r in load_rows(file, schema, tasks.columns(task_cfg), say=print,
+                                           split="train" if split == "train" else "test")], file
     return tasks.load_split(task_cfg, split), f"task {task_cfg.name} ({split})"
 
 

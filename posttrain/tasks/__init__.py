@@ -94,7 +94,8 @@ def load_split(task_cfg, split: str) -> list[dict]:
 
     file = task_cfg.train_file if split == "train" else task_cfg.eval_file
     if file:
-        return [dict(r) for r in load_rows(file, "sft", columns(task_cfg), say=print)]
+        return [dict(r) for r in load_rows(file, "sft", columns(task_cfg), say=print,
+                                           split="train" if split == "train" else "test")]
     task = _task_or_config_error(task_cfg.name)
     n = task_cfg.n_train if split == "train" else task_cfg.n_eval
     rows = task.make_examples(n, task_cfg.seed, split, **difficulty_kwargs(task, task_cfg))

@@ -175,6 +175,9 @@ def test_conversational_pairs_explicit_and_implicit_prompt(tmp_path):
     ({"chosen": [U("a"), A("x"), U("b"), A("y")], "rejected": [U("a"), A("z")]},
      "field 'chosen': expected one assistant message, got 3 message(s) (assistant, user, assistant); a preference "
      "side is one assistant reply"),
+    ({"prompt": "other", "chosen": [U("a"), A("x")], "rejected": [U("a"), A("y")]},
+     "field 'prompt': differs from the turns 'chosen' and 'rejected' share (their implicit prompt); drop it or make "
+     "the conversations start with it"),
     ({"prompt": [U("a")], "chosen": [A("x"), A("y")], "rejected": "z"},
      "field 'chosen': expected one assistant message, got 2 message(s) (assistant, assistant); a preference side "
      "is one assistant reply"),

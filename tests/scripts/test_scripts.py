@@ -262,3 +262,14 @@ def test_e6_arms_option(capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert "unknown arm 'ipo-offline'" in err and "choose from: dpo-offline, ppo-rm" in err
+
+
+def test_make_chat_data_rewrites_the_shipped_files_byte_for_byte(tmp_path):
+    """data/chat/ is what scripts/make_chat_data.py writes (data/README.md: provenance)."""
+    mod = _load(SCRIPTS / "make_chat_data.py")
+    assert mod.main(["--out", str(tmp_path)]) == 0
+    shipped = SCRIPTS.parent / "data" / "chat"
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == sorted(p.name for p in shipped.iterdir())
+    for name in names:
+        assert (tmp_path / name).read_bytes() == (shipped / name).read_bytes(), name
