@@ -4,7 +4,7 @@
     posttrain recipes show NAME|PATH [stage.k=v ...]    the fully resolved config of every stage it configures
     posttrain recipes cp NAME PATH                      a copy to edit, runnable with --recipe PATH
     posttrain validate --recipe NAME|PATH [stage.k=v]   every stage resolved and range-checked, no model loaded
-    posttrain rollouts RUN_DIR [--step N] [--worst K]   a GRPO run's saved rollouts (save_rollouts_every), readably
+    posttrain rollouts RUN_DIR [--step N] [--worst K]   a GRPO / PPO / online DPO run's saved rollouts, readably
     posttrain plot RUN_DIR [--out DIR]                  PNGs of a stage's metrics.jsonl (RUN_DIR/plots/)
     posttrain sft  --recipe tiny-summarize [k=v ...]     run a stage (builds what it needs first)
     posttrain eval --recipe tiny-summarize [model=PATH] [reference=PATH]
@@ -241,9 +241,9 @@ def recipes_command(rest: list[str]) -> int:
 
 
 def rollouts_command(rest: list[str]) -> int:
-    """`posttrain rollouts RUN_DIR [--step N] [--worst K]`: the rollouts a run saved (GRPO's save_rollouts_every),
-    one block each: reward and its parts, advantage, length and finish reason, the verifier's reason, prompt and
-    completion. The newest saved step unless --step; --worst K: only the K lowest rewards."""
+    """`posttrain rollouts RUN_DIR [--step N] [--worst K]`: the rollouts a run saved (save_rollouts_every of GRPO,
+    PPO and online DPO), one block each: reward and its parts, advantage, length and finish reason, the verifier's
+    reason (online DPO: the pair role), prompt and completion. The newest saved step unless --step; --worst K: only the K lowest rewards."""
     from posttrain.chat import prompt_text
     from posttrain.data import DataError
     from posttrain.rollout import load_rollouts

@@ -326,7 +326,7 @@ class MetricsLog:
         if not (self.enabled and self.path.exists()):
             return
         keep = []
-        for line in self.path.read_text().splitlines():
+        for line in self.path.read_text().split("\n"):  # only \n ends a JSON Lines row
             try:
                 if json.loads(line).get("step", 0) <= step:
                     keep.append(line)

@@ -47,7 +47,7 @@ def read_metrics(run_dir: str | Path) -> tuple[Path, dict[str, list[tuple[int, f
     if not path.is_file():
         raise DataError(f"{path}: no metrics.jsonl here (give a stage's run directory, e.g. runs/tiny-math/grpo)")
     series: dict[str, list[tuple[int, float]]] = {}
-    lines = path.read_text().splitlines()
+    lines = path.read_text().split("\n")  # JSON Lines: only \n ends a row (not \u2028)
     for i, line in enumerate(lines, 1):
         if not line.strip():
             continue

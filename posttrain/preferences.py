@@ -151,11 +151,15 @@ def scorer_labeler(scorer) -> Callable[[list[dict], list[list[str]]], list[list[
 
 def sample_pairs(model, tokenizer, rows: list[dict], labeler, *, prompt_keys: Sequence[int], samples_per_prompt: int,
                  pairs_per_prompt: int, temperature: float, top_p: float = 1.0, max_new_tokens: int = 64,
-                 seed: int = 0, strategy: str = "gold") -> tuple[list[dict], dict[str, Any]]:
+                 seed: int = 0, strategy: str = "gold", rollouts_out: list | None = None
+                 ) -> tuple[list[dict], dict[str, Any]]:
     """Sample K completions per row, rank them with `labeler`, form pairs (see the module docstring).
 
     `rows` carry "prompt" (and "meta" for the gold labeler); `prompt_keys` are stable ids (dataset
     indices) that seed each prompt's samples and extra-pair choice. Returns (pair rows, stats).
+    `rollouts_out`: given a list, every sample is appended to it as a Rollout with its key (the reward when the
+    key is a number, its parts when it is a tuple) and its role in the pairs (chosen, rejected, both, unused,
+    or empty), for `posttrain rollouts`.
     """
     from posttrain.loop import Progress
     from posttrain.rollout import SamplingParams, generate
@@ -172,13 +176,15 @@ def sample_pairs(model, tokenizer, rows: list[dict], labeler, *, prompt_keys: Se
     out: list[dict] = []
     tied = 0
     empty = 0
-    for row, key_i, ts, pkey in zip(rows, keys, texts, prompt_keys):
+    for n, (row, key_i, ts, pkey) in enumerate(zip(rows, keys, texts, prompt_keys)):
         rng = random.Random(f"pairs:{seed}:{pkey}")
         # empty completions (eos first) are left out: the preference schema has no empty side
         ok = [i for i, t in enumerate(ts) if t.strip()]
         empty += len(ts) - len(ok)
         pairs = [(ok[c], ok[r]) for c, r in form_pairs([key_i[i] for i in ok], pairs_per_prompt, rng)]
         tied += not pairs
+        if rollouts_out is not None:
+            rollouts_out.extend(_labelled(rollouts[n * K:(n + 1) * K], key_i, pairs, ok))
         for c, r in pairs:
             meta = dict(row.get("meta") or {})
             meta["pair"] = {"prompt_index": int(pkey), "chosen_sample": c, "rejected_sample": r,
@@ -188,6 +194,20 @@ def sample_pairs(model, tokenizer, rows: list[dict], labeler, *, prompt_keys: Se
     stats = {"prompts": len(rows), "samples": len(rollouts), "pairs": len(out), "prompts_all_tied": tied,
              "empty_samples": empty, "finish_length": sum(ro.finish_reason == "length" for ro in rollouts)}
     return out, stats
+
+
+def _labelled(samples: list, keys: Sequence[Any], pairs: list[tuple[int, int]], ok: list[int]) -> list:
+    """One prompt's samples annotated for `posttrain rollouts`: reward (a numeric key), parts (a tuple key's terms),
+    reason (its role in the pairs)."""
+    chosen, rejected = {c for c, _ in pairs}, {r for _, r in pairs}
+    for j, ro in enumerate(samples):
+        key = _jsonable(keys[j])
+        role = ("empty" if j not in ok else "both" if j in chosen and j in rejected else "chosen" if j in chosen
+                else "rejected" if j in rejected else "unused")
+        ro.reward = float(key) if isinstance(key, (int, float)) else None
+        ro.extras.update(reason=f"pair role: {role}", key=key,
+                         parts={f"key[{i}]": float(k) for i, k in enumerate(key)} if isinstance(key, list) else {})
+    return list(samples)
 
 
 def _jsonable(key: Any) -> Any:
@@ -211,7 +231,7 @@ def _read_pair_file(p: Path) -> list[tuple[int, Any]]:
             data = json.loads(text)
             raw = list(enumerate(data if isinstance(data, list) else [data], start=1))
         except json.JSONDecodeError:
-            for number, line in enumerate(text.splitlines(), start=1):
+            for number, line in enumerate(text.split("\n"), start=1):  # not splitlines: \u2028 is text
                 if not line.strip():
                     continue
                 try:

@@ -202,6 +202,13 @@ def save_rollouts(rollouts: Sequence[Rollout], path: str | os.PathLike) -> Path:
     return p
 
 
+def save_step_rollouts(rollouts: Sequence[Rollout], run_dir: str | os.PathLike, step: int) -> list[dict[str, Any]]:
+    """One step's scored rollouts as `<run_dir>/rollouts/step-NNNNNN.jsonl` (what `posttrain rollouts RUN_DIR`
+    prints; GRPO, PPO and online DPO save them every `save_rollouts_every` steps); returns their `table_rows`."""
+    save_rollouts(rollouts, Path(run_dir) / "rollouts" / f"step-{step:06d}.jsonl")
+    return table_rows(rollouts)
+
+
 def table_rows(rollouts: Sequence[Rollout]) -> list[dict[str, Any]]:
     """The rollouts as flat rows for a tracker's table: what a reader scans (no token ids or log-probs)."""
     rows = []

@@ -21,6 +21,7 @@ Implementation details it follows, each with its source and flag (tested in test
  8. Online / iterative DPO (Guo et al. 2024, online AI feedback; `online`, `online_every`, `online_*`): every
     online_every steps, pairs sampled from the current policy on training prompts, labelled by the gold
     preference or the reward model (`online_labeler`) as the prefs stage does, replace the training pairs.
+    `save_rollouts_every` saves a regeneration's samples with their labels and pair roles (`posttrain rollouts`).
  9. Evaluation (`eval_every`, `eval_pairs`, `eval_rows`, `proxy_rm`, `final_eval_rows`): held-out pair loss and
     implicit-reward accuracy; for a gold task `evaluation.policy_eval` (gold metrics, win-rate vs SFT, proxy RM
     reward, KL to the reference), the over-optimisation plot of Gao et al. 2022, `evaluation.compare_with_sft`.
@@ -143,6 +144,9 @@ class DPOConfig:
     """Pairs per prompt per regeneration (as prefs.pairs_per_prompt: best vs worst, then vs the runner-up, ...)."""
     online_temperature: float = 1.0
     """Sampling temperature of online generation."""
+    save_rollouts_every: int = 0
+    """Online DPO: save the samples of the regenerations at multiples of this many steps (a multiple of
+    online_every) to rollouts/step-NNNNNN.jsonl, with their labels and pair roles (0: never; `posttrain rollouts`)."""
     on_bad_rows: Literal["error", "skip"] = "error"
     """Bad pairs (chosen == rejected, empty side, too long): stop with the file and row, or skip with a count."""
     seed: int = 0
@@ -302,14 +306,21 @@ def precompute_reference(cfg: DPOConfig, model, data: PairData, pad_id: int, bud
 
 
 def refresh_pool(step: int, cfg: DPOConfig, policy, tokenizer, max_length: int, rows: list[dict], labeler,
-                 ref: Reference, budget: int, metrics: loop.MetricsLog, say) -> Pool:
-    """Online DPO (detail 8): a pool of fresh pairs from `policy` on sampled training `rows`, labelled by `labeler`."""
+                 ref: Reference, budget: int, metrics: loop.MetricsLog, say, save_to: Path | None = None) -> Pool:
+    """Online DPO (detail 8): a pool of fresh pairs from `policy` on sampled training `rows`, labelled by `labeler`;
+    the samples saved under `save_to` (the run directory, on the main process) at save_rollouts_every."""
+    from posttrain.rollout.records import save_step_rollouts
+
     gen = step // cfg.online_every
     idx = random.Random(f"online:{cfg.seed}:{gen}").sample(range(len(rows)), min(cfg.online_prompts, len(rows)))
+    samples = [] if save_to is not None and cfg.save_rollouts_every and step % cfg.save_rollouts_every == 0 else None
     new_rows, st = preferences.sample_pairs(
         policy, tokenizer, [rows[i] for i in idx], labeler, prompt_keys=idx, samples_per_prompt=cfg.online_samples,
         pairs_per_prompt=cfg.online_pairs_per_prompt, temperature=cfg.online_temperature,
-        max_new_tokens=cfg.max_new_tokens, seed=cfg.seed * 1_000_003 + gen, strategy=f"online-{cfg.online_labeler}")
+        max_new_tokens=cfg.max_new_tokens, seed=cfg.seed * 1_000_003 + gen, strategy=f"online-{cfg.online_labeler}",
+        rollouts_out=samples)
+    if samples:  # rollout inspection: every sample with its label and its role in the pairs
+        metrics.log_table("rollouts", save_step_rollouts(samples, save_to, step), step)
     _, pairs, _ = preferences.check_pairs([{**r, "_row": i + 1} for i, r in enumerate(new_rows)],
                                           f"online pairs (step {step})", "skip", tokenizer, max_length)
     pair_ref = reference_logps(ref.model_for(policy), pairs, tokenizer.pad_token_id, cfg.micro_batch_size or
@@ -356,6 +367,9 @@ def check_config(cfg: DPOConfig) -> None:
     """Inconsistent settings are a ConfigError before anything runs."""
     if cfg.online and cfg.online_every < 1:
         raise ConfigError(f"dpo.online_every must be >= 1, got {cfg.online_every}")
+    if cfg.save_rollouts_every and (not cfg.online or cfg.save_rollouts_every % cfg.online_every):
+        raise ConfigError(f"dpo.save_rollouts_every={cfg.save_rollouts_every} saves the samples of online DPO's "
+                          f"regenerations: it needs online=true and a multiple of online_every={cfg.online_every}")
     if cfg.label_smoothing and cfg.loss_type != "sigmoid":
         raise ConfigError(f"dpo.label_smoothing applies to loss_type=sigmoid only (got loss_type={cfg.loss_type})")
     if not 0.0 <= cfg.label_smoothing <= 0.5 or cfg.beta <= 0:
@@ -422,7 +436,7 @@ def train(res: Resolved, ensure) -> Path:
             labeler = (preferences.gold_labeler(res.task.name) if cfg.online_labeler == "gold" else
                        preferences.scorer_labeler(proxy if proxy is not None else scoring.RewardModelScorer(rm_dir)))
             pool = refresh_pool(step, cfg, policy, tokenizer, res.model.max_length, data.online_rows, labeler, ref,
-                                budget, metrics, say)
+                                budget, metrics, say, run_dir if main else None)
         # ---- batch: this process's share of the step's pairs (indices into the pool), in micro-batches
         idx = loop.batch_indices(len(pool.pairs), cfg.batch_size, cfg.seed + pool.gen, step - pool.start,
                                  accelerator.process_index, accelerator.num_processes)[:per_process]

@@ -595,12 +595,11 @@ def progress_line(done: int, total: int, m: dict[str, float], timing: dict[str, 
             f"train {timing['train']:.2f}), {elapsed:.0f}s elapsed, eta {eta:.0f}s")
 
 
-def save_scored_rollouts(cfg: GRPOConfig, sb: StepBatch, path: Path) -> list[dict]:
-    """The step's rollouts (every round) with what a reader asks of each: the prompt text, the reward and each
+def save_scored_rollouts(cfg: GRPOConfig, sb: StepBatch, run_dir: Path, step: int) -> list[dict]:
+    """The step's rollouts (every round) with what a reader asks of each: the prompt, the reward and each
     reward part, the verifier's reason, the group advantage, whether its group was degenerate (`posttrain
     rollouts RUN_DIR` prints them). Returns them as table rows (for the trackers that show tables)."""
-    from posttrain.rollout import save_rollouts
-    from posttrain.rollout.records import table_rows
+    from posttrain.rollout.records import save_step_rollouts
 
     K = cfg.group_size
     adv = group_advantages(sb.rewards, K, estimator=cfg.estimator, std_scale=cfg.std_scale).tolist()
@@ -610,8 +609,7 @@ def save_scored_rollouts(cfg: GRPOConfig, sb: StepBatch, path: Path) -> list[dic
         r.prompt = sb.problems[i // K].prompt
         r.extras.update(reason=reason, advantage=adv[i], zero_variance_group=bool(degenerate[i // K]),
                         parts={k: v[i] for k, v in sb.parts.items()})
-    save_rollouts(sb.rollouts, path)
-    return table_rows(sb.rollouts)
+    return save_step_rollouts(sb.rollouts, run_dir, step)
 
 
 # ----------------------------------------------------------------------------- train
@@ -729,7 +727,7 @@ def train(res: Resolved, ensure) -> Path:
             if main and not res.run.quiet and (done % cfg.log_every == 0 or done == cfg.max_steps):
                 print(progress_line(done, cfg.max_steps, m, timing, time.time() - t_start, start), flush=True)
             if main and cfg.save_rollouts_every and done % cfg.save_rollouts_every == 0:
-                table = save_scored_rollouts(cfg, sb, run_dir / "rollouts" / f"step-{done:06d}.jsonl")
+                table = save_scored_rollouts(cfg, sb, run_dir, done)
                 metrics.log_table("rollouts", table, done)
             # ---- eval
             if main and held.n_eval and evaluating and done != cfg.max_steps:

@@ -39,6 +39,9 @@ tests/posttrain/trainers/test_ppo.py (the losses and GAE themselves in test_loss
 18. Several epochs (`ppo_epochs`) of minibatches (`minibatch_size`), reshuffled every epoch (seeded).
 19. Learning-rate annealing (`schedule`): linear to 0 over all optimizer steps by default.
 
+`save_rollouts_every` writes an iteration's samples with their raw and shaped scores, KL penalty and mean advantage
+to rollouts/step-NNNNNN.jsonl (`posttrain rollouts RUN_DIR`), and sends them as a table to trackers that show tables.
+
 Departures: one completion per prompt (no groups); no reward-model training during PPO; rewards come through
 `posttrain.scoring` (`RewardModelScorer`, or `GoldScorer` with reward=gold) from the completion TEXT, re-tokenised
 as the reward model was trained, while the value model reads the sampled ids. A non-finite loss, gradient or weight
@@ -159,6 +162,9 @@ class PPOConfig:
     """Held-out prompts for the periodic evaluation."""
     final_eval_rows: int = 200
     """Held-out prompts for the final comparison with the SFT model (0 skips it)."""
+    save_rollouts_every: int = 0
+    """Iterations between saving the iteration's scored rollouts to rollouts/step-NNNNNN.jsonl (0: never); read them
+    with `posttrain rollouts RUN_DIR`."""
     save_every: int = 10
     """Iterations between checkpoints (0: only at the end)."""
     keep_checkpoints: int = 2
@@ -397,6 +403,23 @@ def rollout_and_score(accelerator, m: PPOModels, cfg: PPOConfig, train_rows: lis
             dtype=torch.float32), {"sample": t1 - t0, "score": time.time() - t1})
 
 
+def save_scored_rollouts(rollouts: list, raw: torch.Tensor, scores: torch.Tensor, adv: dict, cm: torch.Tensor,
+                         kl_coef: float, run_dir: Path, step: int) -> list[dict]:
+    """The iteration's rollouts with what a reader asks of each (`posttrain rollouts RUN_DIR` prints them): the
+    reward it was trained on (the per-token rewards summed: shaped score minus the KL penalty), its parts (raw
+    score, shaped score, the sequence's KL (kl_estimator) and kl_coef times it) and its mean advantage over
+    completion tokens. Returns them as table rows (trackers)."""
+    from posttrain.rollout.records import save_step_rollouts
+
+    advantage = masked_mean(adv["advantages"], cm, -1).tolist()  # (B,)
+    total, kl = masked_sum(adv["rewards"], cm, -1).tolist(), masked_sum(adv["kl"], cm, -1).tolist()  # (B,)
+    for i, r in enumerate(rollouts):
+        r.reward = total[i]
+        r.extras.update(advantage=advantage[i], parts={"score_raw": float(raw[i]), "score": float(scores[i]),
+                                                       "kl": kl[i], "kl_penalty": kl_coef * kl[i]})
+    return save_step_rollouts(rollouts, run_dir, step)
+
+
 def measure_reward_norm(accelerator, m: PPOModels, cfg: PPOConfig, train_rows: list[dict], say) -> dict[str, float]:
     """Detail 1: reward statistics of SFT samples of the split's last reward_norm_prompts prompts (checkpointed)."""
     t0, k = time.time(), min(cfg.reward_norm_prompts, len(train_rows))
@@ -554,6 +577,10 @@ def train(res: Resolved, ensure) -> Path:
             saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
             if saving or (cfg.eval_every and done % cfg.eval_every == 0):
                 loop.check_weights(done, m.policy, m.value, unit="iteration")
+        # ---- rollout inspection: the iteration's samples with their scores, KL penalties and advantages
+        if main and cfg.save_rollouts_every and done % cfg.save_rollouts_every == 0:
+            table = save_scored_rollouts(rollouts, raw, scores, adv, cm, kl_ctl.value, run_dir, done)
+            metrics.log_table("rollouts", table, done)
         # ---- KL controller (detail 5; a no-op when fixed)
         mean_kl, kl_coef_used = float(seq_kl.mean()), kl_ctl.value
         kl_ctl.update(mean_kl, cfg.rollout_batch_size)

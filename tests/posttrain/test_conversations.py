@@ -250,3 +250,13 @@ def test_the_rollout_engine_samples_from_conversational_prompts(tmp_path):
     (p,) = tokenize_problems(tok, problems[:1], "train", 8, 64, print)
     assert p.prompt == [U("one plus one?")] and p.reference == "2" and skipped == []
     assert p.prompt_ids == encode_prompts(tok, [[U("one plus one?")]])[0]
+
+
+def test_json_lines_rows_may_hold_unicode_line_separators(tmp_path):
+    """Only \n ends a JSON Lines row: U+2028 and U+0085 inside a string are text (str.splitlines would cut there)."""
+    path = tmp_path / "p.jsonl"
+    path.write_text(json.dumps({"prompt": "a\u2028b", "chosen": "c\x85d", "rejected": "e"}, ensure_ascii=False) + "\n",
+                    encoding="utf-8")
+    (row,) = read_pairs(path)
+    assert row["prompt"] == "a\u2028b" and row["chosen"] == "c\x85d"
+    assert load_rows(path, "preference")[0]["prompt"] == "a\u2028b"

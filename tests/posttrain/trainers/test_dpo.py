@@ -217,12 +217,25 @@ def test_resume_continues_exactly(world, tmp_path):
 def test_online_dpo_regenerates_pairs_from_the_policy(world, tmp_path, capsys):
     out = tmp_path / "online"
     assert main(_args(world, out, "online=true", "online_every=2", "online_prompts=24", "online_samples=4",
-                      "max_steps=4", "batch_size=4", "task.n_train=60", "save_every=2")) == 0
+                      "max_steps=4", "batch_size=4", "task.n_train=60", "save_every=2", "save_rollouts_every=2")) == 0
     rows = [r for r in _metrics(out) if "online/pairs" in r]
     assert [r["step"] for r in rows] == [2] and rows[0]["online/pairs"] >= 4
     assert "online pairs regenerated from the policy" in capsys.readouterr().out
     state = torch.load(out / "tiny-summarize" / "dpo" / "checkpoints" / "step-000004" / "state.pt", weights_only=False)
     assert state["extra"]["online_pool"]["start"] == 2  # the pool travels with the checkpoint (exact resume)
+    # rollout inspection: every sample of the regeneration, its gold key (a tuple: its parts) and its pair role
+    run = out / "tiny-summarize" / "dpo"
+    saved = [json.loads(l) for l in (run / "rollouts" / "step-000002.jsonl").read_text().split("\n") if l]
+    extras = [json.loads(r["extras_json"]) for r in saved]
+    assert len(saved) == 24 * 4 and all(r["prompt"] for r in saved)
+    roles = [e["reason"] for e in extras]
+    assert all(x.startswith("pair role: ") for x in roles)
+    assert sum(x in ("pair role: chosen", "pair role: both") for x in roles) >= 1
+    assert sum(x in ("pair role: rejected", "pair role: both") for x in roles) >= rows[0]["online/pairs"] // 2
+    assert all(set(e["parts"]) == {"key[0]", "key[1]"} for e in extras if e["reason"] != "pair role: empty")
+    assert main(["rollouts", str(run)]) == 0
+    shown = capsys.readouterr().out
+    assert shown.startswith("step 2: 96 rollout(s)") and "reason: pair role: " in shown
 
 
 def test_online_resume_trains_on_the_saved_pairs(world, tmp_path):
@@ -255,8 +268,11 @@ def test_online_dpo_with_a_reward_model_labeler_and_proxy_scores(world, tmp_path
     out = tmp_path / "online-rm"
     assert main(_args(world, out, "online=true", "online_labeler=rm", f"proxy_rm={rm_dir}", "online_every=2",
                       "online_prompts=16", "online_samples=4", "max_steps=4", "batch_size=4", "task.n_train=40",
-                      "eval_every=2")) == 0
+                      "eval_every=2", "save_rollouts_every=2")) == 0
     m = _metrics(out)
+    saved = [json.loads(l) for l in (out / "tiny-summarize" / "dpo" / "rollouts" / "step-000002.jsonl").read_text()
+             .split("\n") if l]  # not splitlines: sampled text may hold \u2028
+    assert len(saved) == 64 and all(isinstance(r["reward"], float) for r in saved)  # the RM's score is the reward
     assert [r["step"] for r in m if "online/pairs" in r] == [2]
     assert [r["step"] for r in m if "proxy/reward" in r] == [0, 2, 4]
     ev = json.loads((out / "tiny-summarize" / "dpo" / "eval.json").read_text())

@@ -315,9 +315,19 @@ def test_ppo_learns_a_hand_made_reward(world, tmp_path, vowels, capsys, learning
 
 def test_fixed_kl_coefficient_stays_and_gold_reward_option_needs_no_reward_model(world, tmp_path):
     out = tmp_path / "gold"
-    assert main(_args(world, out, "kl_coef=0.2", "reward_clip=0", "missing_eos_penalty=0", "temperature=0.7")) == 0
+    assert main(_args(world, out, "kl_coef=0.2", "reward_clip=0", "missing_eos_penalty=0", "temperature=0.7",
+                      "save_rollouts_every=2")) == 0
     m = [r for r in _metrics(out) if "rollout/score_raw" in r]
     assert [r["kl_coef"] for r in m] == [0.2, 0.2]
+    # rollout inspection: the iteration's samples, each with the reward it was trained on and its parts
+    saved = [json.loads(l) for l in (out / "tiny-summarize" / "ppo" / "rollouts" / "step-000002.jsonl").read_text()
+             .split("\n") if l]  # not splitlines: sampled text may hold \u2028
+    extras = [json.loads(r["extras_json"]) for r in saved]
+    assert len(saved) == 8 and all(r["prompt"] for r in saved)
+    for r, e in zip(saved, extras):
+        assert r["reward"] == pytest.approx(e["parts"]["score"] - e["parts"]["kl_penalty"], abs=1e-5)
+        assert e["parts"]["score"] == pytest.approx(e["parts"]["score_raw"]) and "advantage" in e
+    assert sum(e["parts"]["score_raw"] for e in extras) / 8 == pytest.approx(m[-1]["rollout/score_raw"], abs=1e-5)
     # detail 14 in the loop: old log-probs recomputed at T = 0.7 equal the engine's sampling log-probs
     assert all(r["rollout/logprob_gap"] < 1e-3 for r in m)
     assert all(r["rollout/score"] == pytest.approx(r["rollout/score_raw"]) for r in m)  # shaping off
