@@ -51,5 +51,6 @@ def test_sft_then_dpo_on_conversational_files(tmp_path, capsys, learning):
     m = _metrics(tmp_path / "tiny-summarize" / "dpo")
     acc = [r["eval/rewards/accuracy"] for r in m if "eval/rewards/accuracy" in r]
     assert acc[0] == 0.0, acc  # step 0: all implicit rewards are 0
-    # chosen: the document's own summary; rejected: another document's (wrong names and facts)
-    learning.above("dpo held-out implicit-reward accuracy", acc[-1], 0.75, acc)
+    # chosen: the document's own summary; rejected: another document's (wrong names and facts). On 30 held-out
+    # pairs, measured over seeds 0-3 x 1 and 2 threads (Zen 3): 0.70 to 0.93, median 0.78
+    learning.above("dpo held-out implicit-reward accuracy", acc[-1], 0.6, acc)
