@@ -48,6 +48,7 @@ BUILTINS: dict[str, str] = {
     "knights_knaves": "verifiers.logic:KnightsKnavesVerifier",
     "sudoku": "verifiers.logic:SudokuVerifier",
     "logic": "verifiers.logic:LogicVerifier",
+    "gym": "verifiers.gym:GymVerifier",  # reasoning-gym's scorers (optional extra posttrain[gym])
 }
 
 _FILE_MODULES: dict[str, str] = {}  # module name -> absolute path

@@ -69,9 +69,18 @@ TASKS: dict[str, str] = {
 
 
 def get_task(name: str) -> Task:
-    """The task module registered under `name`; a clear error lists the known names."""
+    """The task module registered under `name`, or `gym:DATASET` (a reasoning-gym dataset, posttrain.tasks.gym);
+    a clear error lists the known names."""
+    if name.startswith("gym:"):
+        from posttrain.tasks import gym
+
+        try:
+            return check_task(gym.task(name[len("gym:"):]))  # type: ignore[arg-type]
+        except ImportError as e:  # the optional extra is not installed
+            raise ValueError(str(e)) from None
     if name not in TASKS:
-        raise ValueError(f"unknown task {name!r}; known tasks: {', '.join(sorted(TASKS))}")
+        raise ValueError(f"unknown task {name!r}; known tasks: {', '.join(sorted(TASKS))}, or gym:DATASET "
+                         "(a reasoning-gym dataset, pip install \"posttrain[gym]\")")
     return check_task(importlib.import_module(TASKS[name]))
 
 
