@@ -552,8 +552,27 @@ def report_md(results: dict, an: dict, plots: list[str]) -> str:
           "not in wall time; the gold reward that the stability measures use is evaluated on 100 held-out prompts "
           "at a handful of evaluations per run (the count is in the stability table).", "", "## Plots", ""]
     L += [f"![{f}]({f})" for f in plots] or ["(matplotlib is not installed: no plots)"]
+    if results.get("stage_plots"):
+        L += ["", "Each run's own metric plots (loss, reward, KL, lengths, ...: `posttrain plot`, the same function): "
+              + ", ".join(f"[{name}]({folder})" for name, folder in results["stage_plots"].items()) + "."]
     L += ["", f"Every number above is in `e6_results.json`; the runs are under `{results['runs_dir']}`."]
     return "\n".join(L) + "\n"
+
+
+def stage_plots(run_dirs: dict[str, Path], out: Path) -> dict[str, str]:
+    """`posttrain plot` of each run (posttrain.plots.plot_run) into out/stage-plots/<name>/: {name: folder}."""
+    from posttrain import plots as run_plots
+    from posttrain.data import DataError
+
+    written = {}
+    for name, run_dir in run_dirs.items():
+        try:
+            run_plots.plot_run(run_dir, out / "stage-plots" / name, title=name)
+        except DataError as e:  # no metrics (a reused run without them) or no matplotlib: said, not fatal
+            print(f"[e6] no metric plots of {name}: {e}")
+            continue
+        written[name] = f"stage-plots/{name}"
+    return written
 
 
 # ----------------------------------------------------------------------------- main
@@ -705,6 +724,8 @@ def main(argv: list[str] | None = None) -> int:
     an = analyse(results)
     results.update(an)
     plots = plot(results, out)
+    results["stage_plots"] = stage_plots({f"{a}-seed{r['seed']}": Path(r["run_dir"]) for a in args.arms
+                                          for r in results["runs"][a]}, out)
     (out / "e6_results.json").write_text(json.dumps(results, indent=2, default=str))
     (out / "report.md").write_text(report_md(results, an, plots))
     print(f"[e6] report: {out / 'report.md'} (plots: {', '.join(plots) or 'none'}; numbers: {out / 'e6_results.json'})")

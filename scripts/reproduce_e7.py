@@ -508,6 +508,24 @@ def pct(x: float | None) -> str:
     return "n/a" if x is None else f"{100 * x:.1f}%"
 
 
+def stage_plots(run_dirs: dict[str, Path], out: Path) -> dict[str, str]:
+    """`posttrain plot` of each stage (posttrain.plots.plot_run) into out/stage-plots/<stage>/: {stage: folder}."""
+    from posttrain import plots as run_plots
+    from posttrain.data import DataError
+
+    written = {}
+    for name, run_dir in run_dirs.items():
+        if not (Path(run_dir) / "metrics.jsonl").is_file():
+            continue  # no SFT stage (the real instruct model starts as it is)
+        try:
+            run_plots.plot_run(run_dir, out / "stage-plots" / name, title=name)
+        except DataError as e:  # no matplotlib: said, not fatal
+            print(f"[e7] no metric plots of {name}: {e}")
+            continue
+        written[name] = f"stage-plots/{name}"
+    return written
+
+
 def report_md(res: dict) -> str:
     sft, grpo, g, c = res["eval"]["sft"], res["eval"]["grpo"], res["grpo"], res["compute"]
     sec = res["seconds"]
@@ -655,6 +673,9 @@ def report_md(res: dict) -> str:
     L.append("## Settings\n")
     L.append(f"GRPO config (resolved): `{json.dumps({k: v for k, v in g['config'].items() if k in ('prompts_per_step', 'group_size', 'max_steps', 'lr', 'beta', 'estimator', 'std_scale', 'aggregation', 'zero_variance', 'mu', 'max_new_tokens', 'temperature', 'clip_eps', 'clip_eps_high')})}`. "
              f"Run directories: `{res['runs_dir']}`. Every number above and every plotted series is in `e7.json`.\n")
+    if res.get("stage_plots"):
+        L.append("Each stage's own metric plots (loss, reward, KL, lengths, ...: `posttrain plot`, the same function): "
+                 + ", ".join(f"[{name}]({folder})" for name, folder in res["stage_plots"].items()) + ".\n")
     return "\n".join(L)
 
 
@@ -813,6 +834,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     res["compute"] = compute_table(res)
     res["figures"] = plots(res, out)
+    res["stage_plots"] = stage_plots({"sft": run_root / "sft", "grpo": grpo_dir}, out)
     res["runtime_s"] = time.time() - t_all + sum(seconds[k] for k in ("sft", "grpo") if k in reused)
     (out / "e7.json").write_text(json.dumps(res, indent=2, default=str))
     (out / "report.md").write_text(report_md(res))

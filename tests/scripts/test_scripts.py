@@ -273,3 +273,18 @@ def test_make_chat_data_rewrites_the_shipped_files_byte_for_byte(tmp_path):
     assert names == sorted(p.name for p in shipped.iterdir())
     for name in names:
         assert (tmp_path / name).read_bytes() == (shipped / name).read_bytes(), name
+
+
+@pytest.mark.parametrize("script", ["reproduce_e6.py", "reproduce_e7.py"])
+def test_the_reproductions_plot_each_run_with_posttrain_plot(tmp_path, script):
+    """The reproductions write every run's metric plots with posttrain.plots.plot_run (`posttrain plot`)."""
+    pytest.importorskip("matplotlib")
+    mod = _load(SCRIPTS / script)
+    run = tmp_path / "runs" / "x" / "grpo"
+    run.mkdir(parents=True)
+    (run / "metrics.jsonl").write_text("".join(json.dumps({"step": s, "loss": 1.0 / s, "reward/mean": s / 10})
+                                               + "\n" for s in range(1, 6)))
+    written = mod.stage_plots({"grpo": run, "missing": tmp_path / "nothing"}, tmp_path / "report")
+    assert written == {"grpo": "stage-plots/grpo"}
+    pngs = sorted(p.name for p in (tmp_path / "report" / "stage-plots" / "grpo").glob("*.png"))
+    assert pngs and all(n.endswith(".png") for n in pngs)
