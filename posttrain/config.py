@@ -105,7 +105,7 @@ class RunConfig:
     threads: int = 0
     """torch CPU threads (0: leave torch's default)."""
     quiet: bool = False
-    """No progress bar; metrics still go to metrics.jsonl."""
+    """No per-step console lines and no progress lines of long phases; metrics still go to metrics.jsonl."""
     mixed_precision: Literal["no", "bf16", "auto"] = "no"
     """bf16 autocast over fp32 weights in every stage's training forward and backward (the weights, optimizer state,
     losses and advantages stay fp32; log-probs are taken in fp32 from the bf16 forward's logits, so PPO / GRPO

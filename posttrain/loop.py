@@ -94,6 +94,7 @@ def start_run(res, seed: int, resume: bool, check: Callable[[Any], None] | None 
     if check is not None:
         check(accelerator)
     say = main_printer(accelerator)
+    set_progress_quiet(res.run.quiet or not accelerator.is_main_process)
     if accelerator.mixed_precision != "no":
         say(f"[run] {accelerator.mixed_precision} autocast over fp32 weights (run.mixed_precision="
             f"{res.run.mixed_precision}); generation is not autocast (rollout.dtype={res.rollout.dtype})")
@@ -370,13 +371,23 @@ class MetricsLog:
             self.trackers = None
 
 
+_PROGRESS_QUIET = [False]  # set by start_run: run.quiet, or a process other than the main one
+
+
+def set_progress_quiet(quiet: bool) -> None:
+    """Whether `Progress` lines print by default in this process (`start_run` sets it from run.quiet and the rank)."""
+    _PROGRESS_QUIET[0] = bool(quiet)
+
+
 class Progress:
     """A long phase's progress with an ETA, as `generate(progress=...)` reports it: `label: done/total (pct), Ns
     elapsed, eta Ms`, at most every `every_s` seconds and only once the phase has run that long (a short
-    evaluation prints nothing), then one closing line if it printed any. `quiet`: print nothing."""
+    evaluation prints nothing), then one closing line if it printed any. `quiet`: print nothing (None: as the
+    stage says, `set_progress_quiet`: silent with run.quiet=true and on every process but the main one)."""
 
-    def __init__(self, label: str, every_s: float = 15.0, quiet: bool = False, clock: Callable[[], float] = time.time,
-                 out: Callable[[str], None] | None = None):
+    def __init__(self, label: str, every_s: float = 15.0, quiet: bool | None = None,
+                 clock: Callable[[], float] = time.time, out: Callable[[str], None] | None = None):
+        quiet = _PROGRESS_QUIET[0] if quiet is None else quiet
         self.label, self.every_s, self.quiet, self.clock = label, every_s, quiet, clock
         self.out = out or (lambda line: print(line, flush=True))
         self.t0 = self.last = clock()

@@ -288,7 +288,7 @@ def test_progress_prints_only_long_phases_throttled_with_an_eta():
     from posttrain.loop import Progress
 
     clock, lines = [0.0], []
-    p = Progress("[eval] generating", every_s=10.0, clock=lambda: clock[0], out=lines.append)
+    p = Progress("[eval] generating", every_s=10.0, quiet=False, clock=lambda: clock[0], out=lines.append)
     for done, t in [(8, 4.0), (16, 12.0), (24, 15.0), (32, 24.0), (64, 40.0)]:
         clock[0] = t
         p(done, 64)
@@ -296,11 +296,32 @@ def test_progress_prints_only_long_phases_throttled_with_an_eta():
                      "[eval] generating: 32/64 (50%), 24s elapsed, eta 24s",
                      "[eval] generating: 64/64 done in 40s"]
     short, quiet = [], []
-    p = Progress("x", every_s=10.0, clock=lambda: 1.0, out=short.append)
+    p = Progress("x", every_s=10.0, quiet=False, clock=lambda: 1.0, out=short.append)
     p(5, 10), p(10, 10)
     q = Progress("x", every_s=0.0, quiet=True, out=quiet.append)
     q(5, 10), q(10, 10)
     assert short == [] and quiet == []
+
+
+def test_progress_follows_the_stage_quiet_setting(tmp_path, capsys):
+    """run.quiet=true (and every process but the main one) silences the progress lines of long phases."""
+    from posttrain import loop
+
+    before = loop._PROGRESS_QUIET[0]
+    try:
+        for quiet, expect in ((True, []), (False, ["x: 5/10 (50%), 0s elapsed, eta 0s"])):
+            loop.set_progress_quiet(quiet)
+            lines = []
+            loop.Progress("x", every_s=0.0, clock=lambda: 0.0, out=lines.append)(5, 10)
+            assert lines == expect, quiet
+        from posttrain.config import resolve
+        from posttrain.trainers.sft import SFTConfig
+
+        res = resolve("tiny-summarize", "sft", SFTConfig, [f"run.output_dir={tmp_path}", "run.quiet=true"])
+        loop.start_run(res, 0, False)
+        assert loop._PROGRESS_QUIET[0] is True
+    finally:
+        loop.set_progress_quiet(before)
 
 
 def test_generate_reports_progress_per_micro_batch(tiny_lm):
