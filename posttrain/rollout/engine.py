@@ -141,7 +141,7 @@ def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling:
     backend: "auto" (lean path when supported, else HF forward), "lean", "hf", or "vllm" (a vLLM engine per
         model, `posttrain.rollout.vllm_backend`; weights pushed to it whenever they changed since its last call);
         None: the process default set by `configure` ("auto" unless configured).
-    progress: called as progress(rows_done, rows_total) after each micro-batch of the built-in engine (a row is
+    progress: called as progress(rows_done, rows_total) after each decoding step of the built-in engine (a row is
         one (prompt, sample)); `loop.Progress` prints it with an ETA for long phases (evaluation, pair sampling).
     """
     backend = default_backend() if backend is None else backend
@@ -215,8 +215,10 @@ def generate(model, tokenizer, prompts: Sequence[str | Sequence[int]], sampling:
         with torch.inference_mode():
             total, done = sum(len(b) for b in batches), 0
             for rows in batches:
+                # within a micro-batch (a real model's evaluation may be one long one) rows count as they finish
+                on_step = None if progress is None else (lambda k, d=done: progress(min(d + k, total - 1), total))
                 _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_table, tokenizer, pad_id,
-                                 results)
+                                 results, on_step)
                 done += len(rows)
                 if progress is not None:
                     progress(done, total)
@@ -247,7 +249,9 @@ def plan_micro_batches(lengths: list[int], n: int, max_new: int, budget: int) ->
     return batches
 
 
-def _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_table, tokenizer, pad_id, results):
+def _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_table, tokenizer, pad_id, results,
+                     on_step=None):
+    """Decode one micro-batch into `results`; `on_step(rows_finished)` after each decoding step (progress)."""
     dev = fwd.device
     prompts = []  # unique prompts of this micro-batch, in row order
     row_of_list = []
@@ -336,6 +340,8 @@ def _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_ta
             length[slot_row[s]] = t + 1
             reason[slot_row[s]] = why
         alive_n = Bact - len(dead)
+        if on_step is not None:
+            on_step(B - alive_n)
         if alive_n == 0 or t == steps - 1:
             break
         if dead and len(dead) >= max(1, Bact // 8):

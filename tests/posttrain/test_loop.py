@@ -335,3 +335,9 @@ def test_generate_reports_progress_per_micro_batch(tiny_lm):
              progress=lambda done, total: calls.append((done, total)))
     assert len(calls) >= 2 and calls[-1] == (6, 6)
     assert all(t == 6 for _, t in calls) and [c for c, _ in calls] == sorted(c for c, _ in calls)
+    # one micro-batch (a real model's whole evaluation may be one): reported at every decoding step, rows counted
+    # as they finish, and "all done" only once, at the end
+    one = []
+    generate(model, tok, ["a b", "c d e", "f"], n=2, max_new_tokens=4, ignore_eos=True,
+             progress=lambda done, total: one.append((done, total)))
+    assert one == [(0, 6), (0, 6), (0, 6), (5, 6), (6, 6)]  # 4 steps; every row ends at its limit on the last
