@@ -30,11 +30,15 @@ def configure(backend: str = "auto", dtype: str = "float32", **vllm_options) -> 
     sampling and evaluation call it so): the CLI calls this once per command with the recipe's `rollout:` section
     (`configure(**asdict(res.rollout))`). `vllm_options`: the `vllm_*` fields of config.RolloutConfig.
     `dtype`: the lean engine's weight dtype (`rollout.dtype`: bfloat16 runs its matmuls on bf16 copies of the
-    weights; see posttrain.lean.decode). backend=vllm checks here, before any model loads, that vLLM is importable and a CUDA GPU is visible."""
+    weights, see posttrain.lean.decode; auto: bfloat16 where `runtime.native_bf16()`, else float32). backend=vllm checks here, before any model loads, that vLLM is importable and a CUDA GPU is visible."""
     if backend not in BACKENDS:
         raise ValueError(f"rollout backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if dtype == "auto":  # bf16 weights only where bf16 matmuls are native (emulated bf16 is slower than fp32)
+        from ..runtime import native_bf16
+
+        dtype = "bfloat16" if native_bf16() else "float32"
     if dtype not in DTYPES:
-        raise ValueError(f"rollout dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
+        raise ValueError(f"rollout dtype must be one of auto, {', '.join(DTYPES)}, got {dtype!r}")
     if backend == "vllm":
         from .vllm_backend import require_vllm
 

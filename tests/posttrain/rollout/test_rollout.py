@@ -253,11 +253,24 @@ def test_rollout_dtype_is_checked():
     from posttrain.rollout import engine
     from posttrain.trainers.grpo import GRPOConfig
 
-    with pytest.raises(ValueError, match="rollout dtype must be one of float32, bfloat16"):
+    with pytest.raises(ValueError, match="rollout dtype must be one of auto, float32, bfloat16"):
         engine.configure(dtype="float16")
     with pytest.raises(ConfigError, match="rollout.dtype"):
         resolve("tiny-math", "grpo", GRPOConfig, ["rollout.dtype=int8"])
     assert resolve("tiny-math", "grpo", GRPOConfig, ["rollout.dtype=bfloat16"]).rollout.dtype == "bfloat16"
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_rollout_dtype_auto_is_bf16_only_where_bf16_is_native(native, monkeypatch):
+    from posttrain import runtime
+    from posttrain.rollout import engine
+
+    monkeypatch.setattr(runtime, "native_bf16", lambda: native)
+    try:
+        engine.configure(dtype="auto")
+        assert engine._defaults["dtype"] == ("bfloat16" if native else "float32")
+    finally:
+        engine.configure()
 
 
 # ------------------------------------------------------------------ greedy == model.generate
