@@ -235,10 +235,11 @@ def test_grpo_raises_an_easy_reward_on_the_real_model(smol, tmp_path, learning):
 
 def test_the_smol_math_recipe_runs_end_to_end(smol, tmp_path, capsys):
     """`posttrain grpo --recipe smol-math` as the README shows it (shortened): the instruct model as it is, LoRA,
-    bf16 rollout weights (mismatch/kl logged and small), the console naming the base model, final/ saved."""
+    bf16 rollout weights (mismatch/kl logged and small; set here, as the recipe's auto picks fp32 on CPUs without
+    native bf16), the console naming the base model, final/ saved."""
     out = tmp_path / "runs"
     assert main(["grpo", "--recipe", "smol-math", f"run.output_dir={out}", f"model.path={smol}", "run.quiet=true",
-                 THREADS, "prompts_per_step=2", "group_size=4", "max_new_tokens=24", "max_steps=2", "eval_every=0",
+                 THREADS, "rollout.dtype=bfloat16", "prompts_per_step=2", "group_size=4", "max_new_tokens=24", "max_steps=2", "eval_every=0",
                  "eval_rows=4", "final_eval_rows=4", "save_every=0", "task.n_train=16",
                  "zero_variance=keep"]) == 0  # keep: every step trains, so every step measures mismatch/kl
     _drop_checkpoints(out)
