@@ -114,3 +114,19 @@ def plot_run(run_dir: str | Path, out_dir: str | Path | None = None, title: str 
             written.append(target)
     return written
 
+
+def plot_runs(run_dirs: dict[str, str | Path], out: str | Path, say=print) -> dict[str, str]:
+    """`plot_run` of each named run into `<out>/stage-plots/<name>/` (the reproductions' reports link them):
+    {name: folder relative to `out`}. A run without metrics.jsonl is left out; one that cannot be plotted
+    (no numeric metrics, no matplotlib) is said and left out."""
+    written = {}
+    for name, run_dir in run_dirs.items():
+        if not (Path(run_dir) / "metrics.jsonl").is_file():
+            continue  # e.g. no SFT stage (a real instruct model starts as it is)
+        try:
+            plot_run(run_dir, Path(out) / "stage-plots" / name, title=name)
+        except DataError as e:
+            say(f"no metric plots of {name}: {e}")
+            continue
+        written[name] = f"stage-plots/{name}"
+    return written

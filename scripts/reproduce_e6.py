@@ -559,22 +559,6 @@ def report_md(results: dict, an: dict, plots: list[str]) -> str:
     return "\n".join(L) + "\n"
 
 
-def stage_plots(run_dirs: dict[str, Path], out: Path) -> dict[str, str]:
-    """`posttrain plot` of each run (posttrain.plots.plot_run) into out/stage-plots/<name>/: {name: folder}."""
-    from posttrain import plots as run_plots
-    from posttrain.data import DataError
-
-    written = {}
-    for name, run_dir in run_dirs.items():
-        try:
-            run_plots.plot_run(run_dir, out / "stage-plots" / name, title=name)
-        except DataError as e:  # no metrics (a reused run without them) or no matplotlib: said, not fatal
-            print(f"[e6] no metric plots of {name}: {e}")
-            continue
-        written[name] = f"stage-plots/{name}"
-    return written
-
-
 # ----------------------------------------------------------------------------- main
 def estimate(out: Path, threads: int, arms: list[str], seeds: int = 3) -> dict:
     """Time a few steps of each stage on `small` and extrapolate the full mode (`seeds` seeds of every arm).
@@ -724,8 +708,10 @@ def main(argv: list[str] | None = None) -> int:
     an = analyse(results)
     results.update(an)
     plots = plot(results, out)
-    results["stage_plots"] = stage_plots({f"{a}-seed{r['seed']}": Path(r["run_dir"]) for a in args.arms
-                                          for r in results["runs"][a]}, out)
+    from posttrain.plots import plot_runs  # `posttrain plot` of every run, linked from the report
+
+    results["stage_plots"] = plot_runs({f"{a}-seed{r['seed']}": Path(r["run_dir"]) for a in args.arms
+                                        for r in results["runs"][a]}, out, say=lambda m: print(f"[e6] {m}"))
     (out / "e6_results.json").write_text(json.dumps(results, indent=2, default=str))
     (out / "report.md").write_text(report_md(results, an, plots))
     print(f"[e6] report: {out / 'report.md'} (plots: {', '.join(plots) or 'none'}; numbers: {out / 'e6_results.json'})")

@@ -508,24 +508,6 @@ def pct(x: float | None) -> str:
     return "n/a" if x is None else f"{100 * x:.1f}%"
 
 
-def stage_plots(run_dirs: dict[str, Path], out: Path) -> dict[str, str]:
-    """`posttrain plot` of each stage (posttrain.plots.plot_run) into out/stage-plots/<stage>/: {stage: folder}."""
-    from posttrain import plots as run_plots
-    from posttrain.data import DataError
-
-    written = {}
-    for name, run_dir in run_dirs.items():
-        if not (Path(run_dir) / "metrics.jsonl").is_file():
-            continue  # no SFT stage (the real instruct model starts as it is)
-        try:
-            run_plots.plot_run(run_dir, out / "stage-plots" / name, title=name)
-        except DataError as e:  # no matplotlib: said, not fatal
-            print(f"[e7] no metric plots of {name}: {e}")
-            continue
-        written[name] = f"stage-plots/{name}"
-    return written
-
-
 def report_md(res: dict) -> str:
     sft, grpo, g, c = res["eval"]["sft"], res["eval"]["grpo"], res["grpo"], res["compute"]
     sec = res["seconds"]
@@ -834,7 +816,9 @@ def main(argv: list[str] | None = None) -> int:
     }
     res["compute"] = compute_table(res)
     res["figures"] = plots(res, out)
-    res["stage_plots"] = stage_plots({"sft": run_root / "sft", "grpo": grpo_dir}, out)
+    from posttrain.plots import plot_runs  # `posttrain plot` of each stage, linked from the report
+
+    res["stage_plots"] = plot_runs({"sft": run_root / "sft", "grpo": grpo_dir}, out, say=lambda m: print(f"[e7] {m}"))
     res["runtime_s"] = time.time() - t_all + sum(seconds[k] for k in ("sft", "grpo") if k in reused)
     (out / "e7.json").write_text(json.dumps(res, indent=2, default=str))
     (out / "report.md").write_text(report_md(res))

@@ -277,14 +277,16 @@ def test_make_chat_data_rewrites_the_shipped_files_byte_for_byte(tmp_path):
 
 @pytest.mark.parametrize("script", ["reproduce_e6.py", "reproduce_e7.py"])
 def test_the_reproductions_plot_each_run_with_posttrain_plot(tmp_path, script):
-    """The reproductions write every run's metric plots with posttrain.plots.plot_run (`posttrain plot`)."""
+    """The reproductions write every run's metric plots with posttrain.plots.plot_runs (`posttrain plot`)."""
     pytest.importorskip("matplotlib")
-    mod = _load(SCRIPTS / script)
+    from posttrain.plots import plot_runs
+
+    assert "plot_runs(" in (SCRIPTS / script).read_text()
     run = tmp_path / "runs" / "x" / "grpo"
     run.mkdir(parents=True)
     (run / "metrics.jsonl").write_text("".join(json.dumps({"step": s, "loss": 1.0 / s, "reward/mean": s / 10})
                                                + "\n" for s in range(1, 6)))
-    written = mod.stage_plots({"grpo": run, "missing": tmp_path / "nothing"}, tmp_path / "report")
+    written = plot_runs({"grpo": run, "missing": tmp_path / "nothing"}, tmp_path / "report")
     assert written == {"grpo": "stage-plots/grpo"}
     pngs = sorted(p.name for p in (tmp_path / "report" / "stage-plots" / "grpo").glob("*.png"))
     assert pngs and all(n.endswith(".png") for n in pngs)
