@@ -94,27 +94,30 @@ def ensure_base(res: Resolved) -> Path:
             "task_seed": res.task.seed, "train_file": res.task.train_file, "max_length": res.model.max_length}
     if res.model.split_digits:  # only stamped when set, so bases built before the option stay valid
         want["split_digits"] = True
-    chat = res.model.chat_template == "on" or (res.model.chat_template == "auto" and tasks.is_conversational(res.task))
-    if chat:  # a chat template of its own (posttrain.chat.PRESET_CHAT_TEMPLATE), stamped like split_digits
-        want["chat_template"] = True
+    if res.model.chat_template != "auto":  # on / off; auto decides from the data, at build time (below)
+        want["chat_template"] = res.model.chat_template
     if res.task.columns.mapping():
         want["columns"] = res.task.columns.mapping()
     stamp = base / "posttrain_base.json"
     import json
 
-    def built() -> bool:
-        return is_model_dir(base) and stamp.is_file() and json.loads(stamp.read_text()) == want
+    def built() -> bool:  # "chat" records what auto decided: derived from the stamped settings, not compared
+        return is_model_dir(base) and stamp.is_file() and \
+            {k: v for k, v in json.loads(stamp.read_text()).items() if k != "chat"} == want
 
     if built() or _other_process_waits(built, f"build {base}"):
         return base
     if is_model_dir(base) and stamp.is_file():
         print(f"[base] {base} was built with other settings; rebuilding")
-    texts = tasks.tokenizer_corpus(res.task)
+    rows = tasks.load_split(res.task, "train") if res.task.train_file else None  # read once, for both below
+    # a chat template of its own (posttrain.chat.PRESET_CHAT_TEMPLATE) for conversational data or when asked for
+    chat = res.model.chat_template == "on" or (res.model.chat_template == "auto" and tasks.is_conversational(rows))
+    texts = tasks.tokenizer_corpus(res.task, rows)
     print(f"[base] building the {spec!r} model from scratch: tokenizer trained on {len(texts)} task texts"
           f"{' with a chat template of its own (conversational data)' if chat else ''} -> {base}")
     model, tok = bootstrap(spec, texts, base, vocab_size=res.model.vocab_size, seed=res.model.seed,
                            max_length=res.model.max_length, split_digits=res.model.split_digits, chat=chat)
-    loop.write_json(stamp, want)
+    loop.write_json(stamp, {**want, "chat": True} if chat else want)
     print(f"[base] {count_parameters(model) / 1e6:.2f}M parameters, vocabulary {len(tok)}")
     return base
 

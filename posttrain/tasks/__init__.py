@@ -137,16 +137,17 @@ def columns(task_cfg) -> dict[str, str]:
     return cols.mapping() if cols is not None else {}
 
 
-def tokenizer_corpus(task_cfg) -> list[str]:
+def tokenizer_corpus(task_cfg, rows: list[dict] | None = None) -> list[str]:
     """Texts to train a tokenizer on: the training file's prompts and completions (every message of a
-    conversation), or the task's corpus."""
+    conversation; `rows`: that file's rows when already loaded), or the task's corpus."""
     if task_cfg.train_file:
-        rows = load_split(task_cfg, "train")
+        rows = load_split(task_cfg, "train") if rows is None else rows
         return ["\n".join(m["content"] for m in r["messages"]) if "messages" in r else r["prompt"] + r["completion"]
                 for r in rows]
     return _task_or_config_error(task_cfg.name).corpus(task_cfg.n_train, task_cfg.seed)
 
 
-def is_conversational(task_cfg) -> bool:
-    """The recipe's training file holds conversations (a preset built for it gets a chat template)."""
-    return bool(task_cfg.train_file) and any("messages" in r for r in load_split(task_cfg, "train")[:1])
+def is_conversational(rows: list[dict] | None) -> bool:
+    """The training file's rows (`load_split`; None: no file) are conversations (a preset built for them gets a
+    chat template)."""
+    return bool(rows) and "messages" in rows[0]
