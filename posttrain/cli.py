@@ -113,8 +113,9 @@ def ensure_base(res: Resolved) -> Path:
     # a chat template of its own (posttrain.chat.PRESET_CHAT_TEMPLATE) for conversational data or when asked for
     chat = res.model.chat_template == "on" or (res.model.chat_template == "auto" and tasks.is_conversational(rows))
     texts = tasks.tokenizer_corpus(res.task, rows)
+    why = "model.chat_template=on" if res.model.chat_template == "on" else "conversational data"
     print(f"[base] building the {spec!r} model from scratch: tokenizer trained on {len(texts)} task texts"
-          f"{' with a chat template of its own (conversational data)' if chat else ''} -> {base}")
+          f"{f' with a chat template of its own ({why})' if chat else ''} -> {base}")
     model, tok = bootstrap(spec, texts, base, vocab_size=res.model.vocab_size, seed=res.model.seed,
                            max_length=res.model.max_length, split_digits=res.model.split_digits, chat=chat)
     loop.write_json(stamp, {**want, "chat": True} if chat else want)
