@@ -29,7 +29,7 @@ Pipeline, through the public CLI and API only:
   correction, re-computation lines), with examples; the report states the verdict against the +10-point
   target.
 
-CPU:  python scripts/reproduce_e7.py            the shipped recipe; about 15 min with --threads 1 on 2 CPU cores
+CPU:  python scripts/reproduce_e7.py            the shipped recipe; 15 min on 2 idle cores at 2 threads, ~25 min with --threads 1
       python scripts/reproduce_e7.py --quick    a smoke run of the same pipeline (short SFT and GRPO, 40
                                                 held-out problems); a few minutes
       Measured runtimes and results, with their machine and commit: RESULTS.md (E7).
