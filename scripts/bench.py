@@ -33,8 +33,11 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
   real      a real instruct model (--real DIR, default models/smollm2-135m-instruct; skipped when missing): the
             engine with fp32 and with bf16 weights (rollout.dtype) against fp32 `model.generate` at batch 1 / 16 /
             32 (word-math prompts through the chat template, T=1, exactly max_new_tokens), and one training step
-            (HF forward + backward + AdamW, batch 8) fp32 against bf16 autocast. (SFT / DPO / GRPO steps against
-            TRL on it: not yet.)
+            (HF forward + backward + AdamW, batch 8) fp32 against bf16 autocast; then one SFT, DPO and GRPO step of
+            ours against TRL's on it (word-math rows through the chat template; SFT / DPO batch 4, GRPO 2 prompts x
+            4 x <= 64 tokens, lr 1e-7 so that neither side's completions shrink under the length reward during
+            the run; each side's mean completion length is printed), each fp32 and with bf16 on both sides (ours
+            run.mixed_precision=bf16, GRPO also rollout.dtype=bfloat16; TRL bf16=True). ~20 min in all.
   scaling   how cost grows with model size (--presets, default tiny and small) and sequence length: the
             rollout engine (batch 16, 32-token prompts, 64/128/256 new tokens; 64/128 with --quick) and a
             training step (forward + backward + AdamW on batch 8 of 64/128/256 tokens), tokens/s, time
@@ -243,11 +246,11 @@ def _no_checkpointing() -> dict:
     return {"activation_checkpointing" if "activation_checkpointing" in names else "gradient_checkpointing": False}
 
 
-def _trl_common(args, tmp: str, batch: int) -> dict:
-    """TrainingArguments shared by every TRL trainer here: fp32, no checkpointing, no logging / saving / eval,
-    our batch order (sequential sampler), one pass."""
+def _trl_common(args, tmp: str, batch: int, bf16: bool = False) -> dict:
+    """TrainingArguments shared by every TRL trainer here: fp32 (or bf16 autocast over fp32 weights, bf16=True), no
+    checkpointing, no logging / saving / eval, our batch order (sequential sampler), one pass."""
     return dict(output_dir=tmp, per_device_train_batch_size=batch, num_train_epochs=1,
-                lr_scheduler_type="constant", max_grad_norm=1.0, bf16=False, fp16=False,
+                lr_scheduler_type="constant", max_grad_norm=1.0, bf16=bf16, fp16=False,
                 **_no_checkpointing(), use_cpu=args.device == "cpu", logging_strategy="no",
                 save_strategy="no", eval_strategy="no", report_to=[], disable_tqdm=True,
                 dataloader_num_workers=0, seed=0, train_sampling_strategy="sequential")
@@ -407,6 +410,22 @@ def bench_generate(args) -> dict:
 # ------------------------------------------------------------------ section: sft
 
 
+_REAL: dict = {}
+
+
+def _real_base(args):
+    """(tokenizer, fp32 model) of the real model directory --real, loaded once; its chat template configured as the
+    CLI does (chat.configure "auto"), so our prompt encoders render every prompt through it."""
+    if args.real not in _REAL:
+        from posttrain import chat
+        from posttrain.models import load_model, load_tokenizer
+
+        tok = load_tokenizer(args.real)
+        chat.configure(tok, "auto", say=lambda _: None)
+        _REAL[args.real] = (tok, load_model(args.real).to(args.device).eval())
+    return _REAL[args.real]
+
+
 def _first_step_clock():
     """A TrainerCallback that notes when TRL's first step begins: TRL's time runs from there to the end of
     `train()`, so its one-off setup inside `train()` (dataloader, optimizer, accelerate preparation) is not
@@ -442,28 +461,36 @@ def _trl_timed_train(make_trainer, printer, steps: int, tokens: int, args) -> fl
     return dt
 
 
-def _sft_setup(args) -> SimpleNamespace:
-    """Our SFT step and TRL's SFTTrainer over the same S*B tiny-summarize rows (see the module docstring)."""
+def _sft_setup(args, real: bool = False, bf16: bool = False) -> SimpleNamespace:
+    """Our SFT step and TRL's SFTTrainer over the same S*B rows (see the module docstring): tiny-summarize on the
+    tiny model, or (real=True) word-math rows through the chat template on the real model (--real), batch 4.
+    bf16: both under bf16 autocast over fp32 weights (ours run.mixed_precision=bf16, TRL bf16=True)."""
     from posttrain import loop
     from posttrain.tasks import get_task
     from posttrain.data import collate_completions, tokenize_completions
     from posttrain.logprobs import nll_sum
 
-    B, S, lr, max_len = 16, 6 if args.quick else 16, 1e-4, 256
-    tok = _summarize_tokenizer()
-    rows = get_task("tiny-summarize").make_examples(S * B, 0, "train")
+    if real:
+        tok, base = _real_base(args)
+        B, S, lr, max_len = 4, 2 if args.quick else 3, 1e-5, 512
+        rows = get_task("word-math").make_examples(S * B, 0, "train")
+    else:
+        B, S, lr, max_len = 16, 6 if args.quick else 16, 1e-4, 256
+        tok = _summarize_tokenizer()
+        rows = get_task("tiny-summarize").make_examples(S * B, 0, "train")
+        base = build_model("tiny", tok, seed=0).to(args.device)
     pairs, dropped = tokenize_completions(rows, tok, max_len)
     assert not dropped and len(pairs) == S * B
     tokens = sum(len(p) + len(c) for p, c in pairs)  # non-pad tokens through the model
     loss_tokens = sum(len(c) for _, c in pairs)  # completion tokens (eos included): the loss's tokens
-    base = build_model("tiny", tok, seed=0).to(args.device)
     pad = tok.pad_token_id
 
     def ours() -> float:
         model = copy.deepcopy(base)
-        accelerator = loop.setup(0)
+        accelerator = loop.setup(0, mixed_precision="bf16" if bf16 else None)
         t0 = time.perf_counter()
         optimizer = loop.build_optimizer(model, lr)
+        model, optimizer = accelerator.prepare(model, optimizer)  # as the trainer does (its autocast under bf16)
         scheduler = loop.build_scheduler(optimizer, 0, S, "constant")
         for step in range(S):
             batch = collate_completions(pairs[step * B:(step + 1) * B], pad)
@@ -491,7 +518,7 @@ def _sft_setup(args) -> SimpleNamespace:
 
     def trl_run() -> float:
         targs = TRLConfig(learning_rate=lr, max_length=max_len, packing=False, padding_free=False,
-                          completion_only_loss=True, **_trl_common(args, tmp, B))
+                          completion_only_loss=True, **_trl_common(args, tmp, B, bf16))
         return _trl_timed_train(lambda: SFTTrainer(model=copy.deepcopy(base), args=targs,
                                                    train_dataset=Dataset.from_list(data), processing_class=tok),
                                 printer, S, tokens, args)
@@ -618,7 +645,7 @@ def bench_rm(args) -> dict:
 # ------------------------------------------------------------------ section: dpo
 
 
-def _dpo_setup(args) -> SimpleNamespace:
+def _dpo_setup(args, real: bool = False, bf16: bool = False) -> SimpleNamespace:
     """Our DPO training loop against TRL's DPOTrainer on the same tiny model, pairs, batch and lr.
 
     Both train one pass over the same S*B pairs (S steps of B pairs), so they process exactly the same
@@ -629,28 +656,41 @@ def _dpo_setup(args) -> SimpleNamespace:
     its default); with precompute_ref_log_probs=True (second row) TRL computes them in its constructor, so
     a second, identical precompute pass is timed alone and added to its train() time. TRL is configured for
     this CPU: fp32 (bf16=False), gradient_checkpointing=False, no logging / saving / eval, our batch order.
+    real=True: word-math pairs (chosen = the worked answer, rejected = another problem's) on the real model (--real),
+    prompts through its chat template (TRL is given them rendered, so both tokenize the same text), batch 4.
+    bf16: both under bf16 autocast over fp32 weights (ours run.mixed_precision=bf16, TRL bf16=True).
     """
     from posttrain import loop
     from posttrain.losses import dpo_loss
     from posttrain.preferences import check_pairs, collate_pairs, pair_logps, reference_logps
 
-    B = args.dpo_batch
-    S = 6 if args.quick else 16
-    max_len = 256
-    tok = _summarize_tokenizer()
-    rows = _summarize_pairs(S * B)
+    if real:
+        from posttrain import chat
+        from posttrain.tasks import get_task
+
+        tok, base = _real_base(args)
+        B, S, max_len, lr = 4, 2 if args.quick else 3, 512, 1e-6
+        ex = get_task("word-math").make_examples(S * B + 1, 0, "train")
+        rows = [{"prompt": ex[i]["prompt"], "chosen": ex[i]["completion"], "rejected": ex[i + 1]["completion"],
+                 "_row": i + 1} for i in range(S * B)]
+        trl_rows = [dict(r, prompt=chat.render_prompt(tok, r["prompt"])) for r in rows]
+    else:
+        B, S, max_len, lr = args.dpo_batch, 6 if args.quick else 16, 256, 1e-4
+        tok = _summarize_tokenizer()
+        rows = trl_rows = _summarize_pairs(S * B)
+        base = build_model("tiny", tok, seed=0).to(args.device)
     _, pairs, _ = check_pairs(rows, "bench pairs", "error", tok, max_len)
     tokens = sum(2 * len(p.prompt) + len(p.chosen) + len(p.rejected) for p in pairs)
-    base = build_model("tiny", tok, seed=0).to(args.device)
-    lr, beta = 1e-4, 0.1  # the sigmoid DPO loss (posttrain dpo's default loss_type)
+    beta = 0.1  # the sigmoid DPO loss (posttrain dpo's default loss_type)
     pad = tok.pad_token_id
 
     def ours() -> float:
         model = copy.deepcopy(base)
-        accelerator = loop.setup(0)
+        accelerator = loop.setup(0, mixed_precision="bf16" if bf16 else None)
         t0 = time.perf_counter()
-        ref = reference_logps(model, pairs, pad, B)
+        ref = reference_logps(model, pairs, pad, B)  # fp32, once, as the trainer does (before its autocast)
         optimizer = loop.build_optimizer(model, lr)
+        model, optimizer = accelerator.prepare(model, optimizer)  # as the trainer does (its autocast under bf16)
         scheduler = loop.build_scheduler(optimizer, 0, S, "constant")
         for step in range(S):
             idx = list(range(step * B, (step + 1) * B))
@@ -675,12 +715,12 @@ def _dpo_setup(args) -> SimpleNamespace:
         ctx.trl_error = e
         return ctx
     printer = _trl_quiet()
-    data = [{k: r[k] for k in ("prompt", "chosen", "rejected")} for r in rows]
+    data = [{k: r[k] for k in ("prompt", "chosen", "rejected")} for r in trl_rows]
     tmp = tempfile.mkdtemp(prefix="posttrain-bench-trl-")
 
     def trl_run(precompute: bool = False) -> float:
-        targs = TRLConfig(precompute_ref_log_probs=precompute, precompute_ref_batch_size=B, learning_rate=1e-4,
-                          beta=0.1, max_length=max_len, **_trl_common(args, tmp, B))
+        targs = TRLConfig(precompute_ref_log_probs=precompute, precompute_ref_batch_size=B, learning_rate=lr,
+                          beta=beta, max_length=max_len, **_trl_common(args, tmp, B, bf16))
         ref = None if precompute else copy.deepcopy(base).eval()
         train_data = Dataset.from_list(data)
         train_data._fingerprint = f"posttrain-bench-{time.time_ns()}"  # no reuse of TRL's cached reference log-probs
@@ -856,7 +896,7 @@ def bench_ppo(args) -> dict:
 # ------------------------------------------------------------------ section: grpo
 
 
-def _grpo_setup(args) -> SimpleNamespace:
+def _grpo_setup(args, real: bool = False) -> SimpleNamespace:
     """A GRPO step of `posttrain grpo` (the trainer itself, run through the CLI) against one of TRL's GRPOTrainer.
 
     Same random-init tiny model and tokenizer (vocabulary 1024), the same 64 prompts of 20 words, 2 prompts x
@@ -868,6 +908,11 @@ def _grpo_setup(args) -> SimpleNamespace:
     (sampling + scoring + update); TRL's is timed between its on_step_begin and on_step_end callbacks (its
     generation happens inside the step). The first 2 steps of every run are warm-up and excluded; runs
     alternate; medians over all remaining steps.
+    real=True: the real model (--real) as it is (model.start_from=base), 2 prompts x 4 completions, word-math
+    held-out prompts through its chat template (TRL gets them as one-message conversations, so it applies the same
+    template), max length 512. Each runner takes bf16=True for bf16 on both sides: TRL bf16=True (autocast over
+    fp32 weights, its generation included, as accelerate wraps the model's forward); ours
+    run.mixed_precision=bf16 with rollout.dtype=bfloat16 (the engine's bf16 sampling weights).
     """
     from posttrain.cli import STAGES, main as posttrain_main
 
@@ -875,42 +920,56 @@ def _grpo_setup(args) -> SimpleNamespace:
     from posttrain.models import save_model
     from verifiers.format import LengthVerifier
 
-    steps = 8 if args.quick else 14
     root = Path(tempfile.mkdtemp(prefix="posttrain-bench-grpo-"))
-    corpus = _corpus(300)
-    tok = train_tokenizer(corpus, vocab_size=1024)
-    base = build_model("tiny", tok, seed=0)
-    save_model(base, tok, root / "model")
-    prompts = [" ".join(c.split()[:20]) for c in corpus[:64]]
+    if real:
+        from posttrain.tasks import get_task
+
+        # lr 1e-7: the weights barely move, so neither side's completions shrink under the length reward within
+        # the run (a step's cost follows the generated length; at 1e-4 ours fell from ~60 to ~30 tokens in 3 steps)
+        steps, group, max_len, lr = 5 if args.quick else 7, 4, 512, 1e-7
+        tok, base = _real_base(args)
+        model_dir, start_from = Path(args.real).resolve(), "base"
+        prompts = [r["prompt"] for r in get_task("word-math").make_examples(64, 0, "eval")]
+    else:
+        steps, group, max_len, lr = 8 if args.quick else 14, 8, 256, 1e-4
+        corpus = _corpus(300)
+        tok = train_tokenizer(corpus, vocab_size=1024)
+        base = build_model("tiny", tok, seed=0)
+        model_dir, start_from = root / "model", "sft"
+        save_model(base, tok, model_dir)
+        prompts = [" ".join(c.split()[:20]) for c in corpus[:64]]
     (root / "problems.jsonl").write_text("".join(json.dumps({"prompt": p, "answer": "-", "verifier": "length"}) + "\n"
                                                 for p in prompts))
     recipe = root / "bench-grpo.yaml"
     recipe.write_text(f"""# GRPO step benchmark (scripts/bench.py); posttrain grpo --recipe this file, ~1 min
 task: {{name: tiny-countdown, n_train: 16, n_eval: 8}}
-model: {{path: {root / 'model'}, max_length: 256}}
+model: {{path: {model_dir}, max_length: {max_len}, start_from: {start_from}}}
 grpo:
   verifier: length
   verifier_options: {{max_chars: 150}}
   verifier_workers: 0
   train_file: {root / 'problems.jsonl'}
   prompts_per_step: 2
-  group_size: 8
+  group_size: {group}
   max_new_tokens: {args.max_new_tokens}
   zero_variance: keep
-  lr: 1.0e-4
+  lr: {lr:.1e}
   eval_every: 0
   eval_rows: 0
   final_eval_rows: 0
   save_every: 0
 """)
-    sft = root / "runs" / "bench-grpo" / "sft" / "final"
-    sft.parent.mkdir(parents=True)
-    shutil.copytree(root / "model", sft)
+    if not real:
+        sft = root / "runs" / "bench-grpo" / "sft" / "final"
+        sft.parent.mkdir(parents=True)
+        shutil.copytree(model_dir, sft)
 
-    def ours(*overrides: str) -> tuple[list[float], dict[str, float]]:
+    def ours(*overrides: str, bf16: bool = False) -> tuple[list[float], dict[str, float]]:
+        precision = ["run.mixed_precision=bf16", "rollout.dtype=bfloat16"] if bf16 else []
         with contextlib.redirect_stdout(io.StringIO()):
             rc = posttrain_main(["grpo", "--recipe", str(recipe), f"run.output_dir={root / 'runs'}",
-                                 f"run.threads={args.threads}", "run.quiet=true", f"max_steps={steps}", *overrides])
+                                 f"run.threads={args.threads}", "run.quiet=true", f"max_steps={steps}", *precision,
+                                 *overrides])
         assert rc == 0, "posttrain grpo failed"
         rows = [json.loads(l) for l in (root / "runs" / "bench-grpo" / "grpo" / "metrics.jsonl").read_text().splitlines()]
         rows = [r for r in rows if "time/step" in r][2:]
@@ -918,7 +977,7 @@ grpo:
         phases["completion_tokens"] = statistics.mean(r["completion/length"] for r in rows)
         return [r["time/step"] for r in rows], phases
 
-    ctx = SimpleNamespace(steps=steps, base=base, runners={"posttrain": ours}, trl_error=None,
+    ctx = SimpleNamespace(steps=steps, group=group, base=base, runners={"posttrain": ours}, trl_error=None,
                           cleanup=lambda: shutil.rmtree(root, ignore_errors=True))
     try:
         from datasets import Dataset
@@ -931,11 +990,13 @@ grpo:
     length = LengthVerifier(max_chars=150)
 
     def length_reward(completions, **kwargs):
-        return [length.check(c, None).score for c in completions]
+        # a conversational prompt gets its completions as messages: score the text of the reply
+        return [length.check(c if isinstance(c, str) else "".join(m["content"] for m in c), None).score
+                for c in completions]
 
     class StepTimer(TrainerCallback):
         def __init__(self):
-            self.times, self.t0 = [], 0.0
+            self.times, self.lengths, self.t0, self.trainer = [], [], 0.0, None
 
         def on_step_begin(self, *a, **k):
             self.t0 = time.perf_counter()
@@ -943,23 +1004,30 @@ grpo:
         def on_step_end(self, *a, **k):
             _sync(args.device)
             self.times.append(time.perf_counter() - self.t0)
+            # the step's mean completion length, from TRL's metric store (it clears that store whenever it logs)
+            m = getattr(self.trainer, "_metrics", {}).get("train", {}).get("completions/mean_length")
+            self.lengths.append(m[-1] if m else float("nan"))
 
-    def trl_run(**method) -> list[float]:
-        targs = TRLConfig(output_dir=str(root / "trl"), per_device_train_batch_size=16, num_generations=8,
+    trl_prompts = [[{"role": "user", "content": p}] for p in prompts] if real else prompts
+
+    def trl_run(bf16: bool = False, **method) -> list[float]:
+        targs = TRLConfig(output_dir=str(root / "trl"), per_device_train_batch_size=2 * group, num_generations=group,
                           max_completion_length=args.max_new_tokens, temperature=1.0, beta=0.0, num_iterations=1,
-                          learning_rate=1e-4, lr_scheduler_type="constant", max_grad_norm=1.0, max_steps=steps,
-                          bf16=False, fp16=False, **_no_checkpointing(), use_cpu=args.device == "cpu",
+                          learning_rate=lr, lr_scheduler_type="constant", max_grad_norm=1.0, max_steps=steps,
+                          bf16=bf16, fp16=False, **_no_checkpointing(), use_cpu=args.device == "cpu",
                           logging_strategy="no", save_strategy="no", report_to=[], disable_tqdm=True,
                           dataloader_num_workers=0, seed=0, **method)
         timer = StepTimer()
         with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
             trainer = GRPOTrainer(model=copy.deepcopy(base), reward_funcs=[length_reward], args=targs,
-                                  train_dataset=Dataset.from_list([{"prompt": p} for p in prompts]),
+                                  train_dataset=Dataset.from_list([{"prompt": p} for p in trl_prompts]),
                                   processing_class=tok, callbacks=[timer])
             trainer.remove_callback(printer)
+            timer.trainer = trainer
             out = trainer.train()
         assert out.global_step == steps, f"TRL ran {out.global_step} steps, expected {steps}"
         assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
+        ctx.trl_completion_tokens = statistics.mean(timer.lengths[2:])
         return timer.times[2:]
 
     ctx.runners["trl"] = trl_run
@@ -1085,7 +1153,7 @@ distill:
 
     class StepTimer(TrainerCallback):
         def __init__(self):
-            self.times, self.t0 = [], 0.0
+            self.times, self.lengths, self.t0, self.trainer = [], [], 0.0, None
 
         def on_step_begin(self, *a, **k):
             self.t0 = time.perf_counter()
@@ -1093,6 +1161,9 @@ distill:
         def on_step_end(self, *a, **k):
             _sync(args.device)
             self.times.append(time.perf_counter() - self.t0)
+            # the step's mean completion length, from TRL's metric store (it clears that store whenever it logs)
+            m = getattr(self.trainer, "_metrics", {}).get("train", {}).get("completions/mean_length")
+            self.lengths.append(m[-1] if m else float("nan"))
 
     def trl_run() -> list[float]:
         targs = DistillationConfig(output_dir=str(root / "trl"), per_device_train_batch_size=16,
@@ -1107,9 +1178,11 @@ distill:
                                           args=targs, train_dataset=Dataset.from_list([{"prompt": p} for p in prompts]),
                                           processing_class=trl_tok, callbacks=[timer])
             trainer.remove_callback(printer)
+            timer.trainer = trainer
             out = trainer.train()
         assert out.global_step == steps, f"TRL ran {out.global_step} steps, expected {steps}"
         assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
+        ctx.trl_completion_tokens = statistics.mean(timer.lengths[2:])
         return timer.times[2:]
 
     ctx.runners["trl"] = trl_run
@@ -1233,17 +1306,15 @@ def bench_real(args) -> dict:
     bf16 weights (rollout.dtype) against fp32 `model.generate`, and one training step with and without bf16
     autocast (run.mixed_precision=bf16). Skipped, saying so, when the directory is missing."""
     from posttrain import chat
-    from posttrain.models import is_model_dir, load_model, load_tokenizer
+    from posttrain.models import is_model_dir
     from posttrain.tasks import wordmath
 
     if not is_model_dir(args.real):
         print(f"skipped: no model directory at {args.real} (posttrain models fetch smollm2-135m-instruct {args.real})")
         return {"skipped": str(args.real)}
-    tok = load_tokenizer(args.real)
-    chat.configure(tok, "auto", say=lambda _: None)
     from posttrain.rollout import engine as eng
 
-    model = load_model(args.real).to(args.device).eval()
+    tok, model = _real_base(args)
     models = {"float32": model, "bfloat16": copy.deepcopy(model)}
     M = args.max_new_tokens
     print(f"{args.real}: {count_parameters(model) / 1e6:.1f}M parameters; prompts: word-math held-out problems "
@@ -1316,10 +1387,57 @@ def bench_real(args) -> dict:
     print(f"training step, batch 8 x {enc['input_ids'].shape[1]} tokens (HF forward + backward + AdamW): fp32 "
           f"{fp32_s:.2f} s, bf16 autocast {bf16_s:.2f} s ({fp32_s / bf16_s:.2f}x); loss of the same weights fp32 "
           f"{losses[False]:.4f}, bf16 autocast {losses[True]:.4f}")
+    del train_model, opt
+    gc.collect()
     return {"rows": rows_out, "train_step": {"tokens": int(enc["input_ids"].numel()), "fp32_s": fp32_s,
                                              "loss_fp32": losses[False], "loss_bf16": losses[True],
                                              "bf16_autocast_s": bf16_s, "speedup": fp32_s / bf16_s,
-                                             "times": {"fp32": t_step[False], "bf16": t_step[True]}}}
+                                             "times": {"fp32": t_step[False], "bf16": t_step[True]}},
+            "trainers": _real_trainers(args)}
+
+
+def _real_trainers(args) -> dict:
+    """One SFT, DPO and GRPO step of ours against TRL's on the real model, fp32 and under bf16 (see the setups)."""
+    out: dict = {}
+    repeats = 1 if args.quick else 2
+    print(f"\n{'stage (real model)':<34} {'precision':>9} {'TRL s/step':>11} {'posttrain':>10} {'ratio':>7}")
+
+    def row(stage, precision, mt, mo, extra=None):
+        print(f"{stage:<34} {precision:>9} {mt:>11.3f} {mo:>10.3f} {mt / mo:>6.2f}x", flush=True)
+        out.setdefault(stage, {})[precision] = dict(trl_s_per_step=mt, ours_s_per_step=mo, ratio=mt / mo,
+                                                    **(extra or {}))
+
+    for stage, setup in (("sft", _sft_setup), ("dpo", _dpo_setup)):
+        for bf16 in (False, True):
+            ctx = setup(args, real=True, bf16=bf16)
+            if ctx.trl_error is not None:
+                _trl_missing(ctx.trl_error)
+                return out
+            times = _alternate({"trl": ctx.runners["trl"], "posttrain": ctx.runners["posttrain"]}, repeats,
+                               args.device)
+            mt, mo = statistics.median(times["trl"]) / ctx.S, statistics.median(times["posttrain"]) / ctx.S
+            label = (f"SFT, {ctx.B} rows x {ctx.tokens / (ctx.S * ctx.B):.0f} tok" if stage == "sft" else
+                     f"DPO, {ctx.B} pairs x {ctx.tokens / (ctx.S * ctx.B):.0f} tok")
+            row(label, "bf16" if bf16 else "fp32", mt, mo, dict(times=times, tokens=ctx.tokens, steps=ctx.S))
+            ctx.cleanup()
+    ctx = _grpo_setup(args, real=True)
+    try:
+        for bf16 in (False, True):
+            t_ours, phases = ctx.runners["posttrain"](bf16=bf16)
+            t_trl = ctx.runners["trl"](bf16=bf16)
+            mt, mo = statistics.median(t_trl), statistics.median(t_ours)
+            row(f"GRPO, 2 x {ctx.group} x <= {args.max_new_tokens} tok", "bf16" if bf16 else "fp32", mt, mo,
+                dict(ours_times=t_ours, trl_times=t_trl, ours_phases=phases,
+                     trl_completion_tokens=ctx.trl_completion_tokens))
+            print(f"  completion tokens per row: posttrain {phases['completion_tokens']:.1f}, TRL "
+                  f"{ctx.trl_completion_tokens:.1f}; posttrain sample {phases['sample']:.2f} s, update "
+                  f"{phases['train']:.2f} s", flush=True)
+    finally:
+        ctx.cleanup()
+    print("ratio = TRL time per step / posttrain time per step; same model, rows, batch and settings. bf16: autocast "
+          "over fp32 weights on both sides (GRPO: ours also samples with bf16 weights, rollout.dtype=bfloat16; TRL "
+          "generates under its autocast).")
+    return out
 
 
 SECTIONS = {
