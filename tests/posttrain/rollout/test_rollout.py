@@ -575,7 +575,9 @@ def test_lora_model_runs_the_lean_path_with_adapters_fused(trained):
     assert [r.completion_ids for r in off] == [r.completion_ids for r in a]
     ref_lp, _ = batched_logprobs(reference_view(lora), batch, micro_batch_size=3)
     base_lp, _ = batched_logprobs(model, batch, micro_batch_size=3)
-    torch.testing.assert_close(ref_lp, base_lp, atol=1e-5, rtol=0)
+    # the same math in another summation order (PEFT's layers with adapters off vs the plain model): fp32 rounding
+    # of log-probs of magnitude ~3 reaches 2e-5 on some machines, so the bound is the suite's usual 1e-4
+    torch.testing.assert_close(ref_lp, base_lp, atol=1e-4, rtol=0)
     dora = peft.get_peft_model(__import__("copy").deepcopy(model),
                                peft.LoraConfig(r=4, target_modules=["q_proj"], use_dora=True))
     fwd, why = select_backend(dora, 64)
