@@ -1153,7 +1153,7 @@ distill:
 
     class StepTimer(TrainerCallback):
         def __init__(self):
-            self.times, self.lengths, self.t0, self.trainer = [], [], 0.0, None
+            self.times, self.t0 = [], 0.0
 
         def on_step_begin(self, *a, **k):
             self.t0 = time.perf_counter()
@@ -1161,9 +1161,6 @@ distill:
         def on_step_end(self, *a, **k):
             _sync(args.device)
             self.times.append(time.perf_counter() - self.t0)
-            # the step's mean completion length, from TRL's metric store (it clears that store whenever it logs)
-            m = getattr(self.trainer, "_metrics", {}).get("train", {}).get("completions/mean_length")
-            self.lengths.append(m[-1] if m else float("nan"))
 
     def trl_run() -> list[float]:
         targs = DistillationConfig(output_dir=str(root / "trl"), per_device_train_batch_size=16,
@@ -1178,11 +1175,9 @@ distill:
                                           args=targs, train_dataset=Dataset.from_list([{"prompt": p} for p in prompts]),
                                           processing_class=trl_tok, callbacks=[timer])
             trainer.remove_callback(printer)
-            timer.trainer = trainer
             out = trainer.train()
         assert out.global_step == steps, f"TRL ran {out.global_step} steps, expected {steps}"
         assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
-        ctx.trl_completion_tokens = statistics.mean(timer.lengths[2:])
         return timer.times[2:]
 
     ctx.runners["trl"] = trl_run
