@@ -17,7 +17,7 @@ from column 0, padding included. Wrappers (accelerate/DDP, peft, torch.compile) 
 `.logits` from the output.
 
 Lean path. For a plain fp32 Llama / Mistral / Qwen2 `*ForCausalLM` (not wrapped by DDP / peft /
-torch.compile, no gradient checkpointing, no dropout) `sequence_logprobs` runs
+torch.compile, no gradient checkpointing, no dropout; fp32 or under bf16 autocast) `sequence_logprobs` runs
 `posttrain.lean.lean_forward` instead of the model's forward, and a fused log-prob with a cheaper
 backward: the same numbers within fp32 rounding, faster for a tiny-model update step (RESULTS.md). Turn it
 off with `posttrain.lean.ENABLED = False` or POSTTRAIN_LEAN_TRAIN=0. Rows that share their prompt

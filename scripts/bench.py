@@ -33,7 +33,9 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
   real      a real instruct model (--real DIR, default models/smollm2-135m-instruct; skipped when missing): the
             engine with fp32 and with bf16 weights (rollout.dtype) against fp32 `model.generate` at batch 1 / 16 /
             32 (word-math prompts through the chat template, T=1, exactly max_new_tokens), and one training step
-            (HF forward + backward + AdamW, batch 8) fp32 against bf16 autocast; then one SFT, DPO and GRPO step of
+            (HF forward + backward + AdamW, batch 8) fp32 against bf16 autocast, and the policy update's log-prob
+            forward + backward (8 rows x 124 tokens) on the lean training forward and the HF one, each fp32 and
+            under bf16 autocast; then one SFT, DPO and GRPO step of
             ours against TRL's on it (word-math rows through the chat template; SFT / DPO batch 4, GRPO 2 prompts x
             4 x <= 64 tokens, lr 1e-7 so that neither side's completions shrink under the length reward during
             the run; each side's mean completion length is printed), each fp32 and with bf16 on both sides (ours
@@ -1388,7 +1390,59 @@ def bench_real(args) -> dict:
                                              "loss_fp32": losses[False], "loss_bf16": losses[True],
                                              "bf16_autocast_s": bf16_s, "speedup": fp32_s / bf16_s,
                                              "times": {"fp32": t_step[False], "bf16": t_step[True]}},
+            "logprob_step": _real_logprob_step(args, model),
             "trainers": _real_trainers(args)}
+
+
+def _real_logprob_step(args, model) -> dict:
+    """The policy update's forward + backward (`sequence_logprobs` of a GRPO-like batch: 2 prompts x 4 completions,
+    60 prompt + 64 completion tokens) on the real model: the lean training forward against the HF forward, each
+    fp32 and under bf16 autocast (what run.mixed_precision=bf16 gives the trainers), with how far each moves the
+    log-probs from the fp32 lean path's."""
+    from posttrain.lean import support
+    from posttrain.logprobs import sequence_logprobs
+
+    m = copy.deepcopy(model).train()
+    g = torch.Generator().manual_seed(0)
+    V = m.config.vocab_size
+    prompt = torch.randint(10, V, (2, 60), generator=g).repeat_interleave(4, 0)
+    ids = torch.cat([prompt, torch.randint(10, V, (8, 64), generator=g)], 1).to(args.device)
+    am = torch.ones_like(ids)
+    cm = am.clone()
+    cm[:, :60] = 0
+    lps: dict = {}
+
+    def step(lean: bool, bf16: bool):
+        was = support.ENABLED
+        support.ENABLED = lean
+        try:
+            m.zero_grad(set_to_none=True)
+            with torch.autocast(args.device, dtype=torch.bfloat16, enabled=bf16):
+                lp, _ = sequence_logprobs(m, ids, am, cm)
+            lp.sum().backward()
+            lps[(lean, bf16)] = lp.detach()
+        finally:
+            support.ENABLED = was
+
+    variants = [(lean, bf16) for bf16 in (False, True) for lean in (False, True)]
+    for v in variants:
+        step(*v)  # warm-up
+    times: dict = {v: [] for v in variants}
+    for _ in range(max(2, args.repeats // 2)):
+        for v in variants:
+            times[v].append(_timed(lambda: step(*v), args.device))
+    med = {v: statistics.median(t) for v, t in times.items()}
+    ref = lps[(True, False)]
+    print(f"policy log-prob forward + backward, 8 rows x {ids.shape[1]} tokens (sequence_logprobs):")
+    out = {}
+    for lean, bf16 in variants:
+        name = f"{'lean' if lean else 'HF'} {'bf16 autocast' if bf16 else 'fp32'}"
+        err = float((lps[(lean, bf16)] - ref).abs().max())
+        print(f"  {name:<18} {med[(lean, bf16)]:6.2f} s   max |log-prob - lean fp32's| {err:.2e}")
+        out[name] = {"s": med[(lean, bf16)], "times": times[(lean, bf16)], "max_abs_logprob_diff": err}
+    del m
+    gc.collect()
+    return out
 
 
 def _real_trainers(args) -> dict:
@@ -1506,7 +1560,7 @@ def main(argv=None) -> int:
         results[name]["section_seconds"] = time.perf_counter() - t_sec
         print(f"({name}: {results[name]['section_seconds']:.0f} s)")
     print(f"\ntotal {time.perf_counter() - t0:.0f} s; load average {_load()}")
-    if os.getloadavg()[0] > 1.5:
+    if os.getloadavg()[0] > args.threads + 0.5:  # the bench's own threads count towards the load
         print("note: other processes were using the CPU; with shared cores, OpenMP threads stall at barriers "
               "and timings (both columns) swing widely. Rerun on an idle machine for stable ratios.")
     if args.json:

@@ -6,15 +6,18 @@ rollout engine's decoder (`posttrain.lean.decode`) and the differentiable traini
 of `LEAN_MODEL_TYPES` (llama / mistral / qwen2) with a silu MLP, Llama-style RMSNorms, no q/k norms, no
 logit soft-capping or scaling, RoPE with static frequencies (default, linear, llama3, yarn: `inv_freq` and
 `attention_scaling` read from the module; not dynamic / longrope), a sequence no longer than a sliding
-window, fp32 weights on one device, no torch.autocast, no sharded parameters (FSDP / DTensor / ZeRO-3 keep
+window, fp32 weights on one device, no sharded parameters (FSDP / DTensor / ZeRO-3 keep
 only a shard outside the model's own forward) and no accelerate device-map hooks. Then per mode:
-- "decode" (the engine): a `*ForCausalLM`, or a peft model with plain LoRA adapters on Linear layers (the
-  decoder fuses base + deltas into its weights and honours disabled adapters).
+- "decode" (the engine): not under torch.autocast (generation precision is `rollout.dtype`'s), a
+  `*ForCausalLM`, or a peft model with plain LoRA adapters on Linear layers (the decoder fuses base + deltas
+  into its weights and honours disabled adapters).
 - "train" (`sequence_logprobs`, reward / value forwards): the object passed is itself a `*ForCausalLM`
   (head="lm") or `*ForSequenceClassification` (head="score") `PreTrainedModel` (not DDP / FSDP / peft /
   torch.compile-wrapped: a wrapper needs its own forward for gradient sync or adapters), plain nn.Linear
   projections and nn.Embedding, no gradient checkpointing, attention_dropout 0, no module hooks, and not
-  accelerate's mixed-precision-patched forward. `ENABLED = False` (or POSTTRAIN_LEAN_TRAIN=0) turns it off.
+  fp16 / fp8 mixed precision: under bf16 autocast (the caller's torch.autocast, or accelerate's mixed precision,
+  whose patched forward it never calls: `train_autocast`) it runs its matmuls in bf16 as the HF forward would,
+  with an fp32 residual stream and fp32 log-probs. `ENABLED = False` (or POSTTRAIN_LEAN_TRAIN=0) turns it off.
 Anything else returns the reason, and the caller falls back to the Hugging Face forward.
 
 RoPE as one complex multiply (both paths): the q/k rows of each head are permuted from the half-split
@@ -97,14 +100,54 @@ def rope_cis(inv_freq: torch.Tensor, attention_scaling: float, positions: torch.
 
 # ----------------------------------------------------------------------------- what neither path implements
 def autocast_problem(device) -> str | None:
-    """The lean paths compute in fp32 with fp32 weights: under torch.autocast (mixed precision) the caller falls
-    back to the model's own forward, which follows the autocast policy (and returns fp32 log-probs from it)."""
+    """The engine's lean decoder computes in its weights' dtype: under torch.autocast the caller falls back to
+    the model's own forward, which follows the autocast policy. (The training forward runs under bf16
+    autocast: `train_autocast`.)"""
     kind = torch.device(device).type
     try:
         on = torch.is_autocast_enabled(kind)
     except (TypeError, RuntimeError):  # a device type autocast does not know
         on = False
     return f"torch.autocast is on for {kind} (mixed precision)" if on else None
+
+
+def _accelerate_mixed_precision() -> str | None:
+    """The process's accelerate mixed precision ("no", "bf16", "fp16", "fp8"), or None while no Accelerator
+    exists (reading AcceleratorState() before then would create one)."""
+    try:
+        from accelerate.state import AcceleratorState
+    except ImportError:
+        return None
+    if not getattr(AcceleratorState, "_shared_state", None):
+        return None
+    return str(AcceleratorState().mixed_precision)
+
+
+def train_autocast(model, device) -> tuple[torch.dtype | None, str | None]:
+    """The autocast the lean training forward runs under, as (dtype or None for fp32, why it cannot run or None).
+
+    Mixed precision reaches a model two ways, and the lean forward honours both: the caller's torch.autocast
+    (on for `device`'s type), or accelerate's (Accelerator.prepare under mixed precision keeps the model's own
+    forward in `_original_forward` and wraps `forward` in autocast; the lean path never calls `forward`, so it
+    enters the same bf16 autocast itself). bf16 only: fp16 autocast needs loss scaling and fp8 its own kernels,
+    so those fall back to the model's forward."""
+    kind = torch.device(device).type
+    try:
+        on = torch.is_autocast_enabled(kind)
+    except (TypeError, RuntimeError):  # a device type autocast does not know
+        on = False
+    if on:
+        dtype = torch.get_autocast_dtype(kind)
+        if dtype != torch.bfloat16:
+            return None, f"torch.autocast to {dtype} on {kind} (the lean training forward runs bf16 autocast only)"
+        return torch.bfloat16, None
+    if "_original_forward" in vars(model):  # accelerate's mixed precision patched forward (autocast inside it)
+        mp = _accelerate_mixed_precision()
+        if mp == "bf16":
+            return torch.bfloat16, None
+        return None, (f"accelerate mixed precision {mp!r}: the model's autocast forward is used (the lean path "
+                      "runs bf16 only)")
+    return None, None
 
 
 def sharded_problem(model) -> str | None:
@@ -195,14 +238,18 @@ def lean_support(model, seq_len: int | None = None, *, mode: str = "decode", hea
             return False, "embedding with max_norm / scale_grad_by_freq / sparse"
         if any(p.dtype != torch.float32 for p in model.parameters()):
             return False, "not every parameter is fp32"
-        if "_original_forward" in vars(model):  # accelerate's mixed precision patched forward (autocast inside it)
-            return False, "accelerate mixed precision: the model's autocast forward is used"
     elif effective_weight(out).dtype != torch.float32:
         return False, f"dtype {effective_weight(out).dtype} (the lean path is fp32)"
     devices = {p.device for p in model.parameters()}
     if len(devices) != 1 or next(iter(devices)).type == "meta":
         return False, f"weights on several devices or on meta ({sorted(str(d) for d in devices)})"
-    why = autocast_problem(next(iter(devices))) or llama_family_problem(cfg, base)
+    device = next(iter(devices))
+    amp = None
+    if train:
+        amp, why = train_autocast(model, device)
+    else:
+        why = autocast_problem(device)
+    why = why or llama_family_problem(cfg, base)
     if why:
         return False, why
     window = getattr(cfg, "sliding_window", None)
@@ -234,5 +281,5 @@ def lean_support(model, seq_len: int | None = None, *, mode: str = "decode", hea
     if not hasattr(getattr(base, "norm", None), "variance_epsilon"):
         return False, "the final norm is not a Llama-style RMSNorm"
     if train:
-        return True, f"lean training forward ({mt})"
+        return True, f"lean training forward ({mt}{', bf16 autocast' if amp is not None else ''})"
     return True, f"lean Llama-family path ({mt}{', LoRA fused' if lora else ''})"

@@ -89,7 +89,7 @@ def test_sft_killed_midway_resumes_from_last_checkpoint(tmp_path):
 
 
 def test_bf16_mixed_precision_trains_fp32_weights_with_nearly_the_fp32_losses(tmp_path, capsys):
-    """run.mixed_precision=bf16: autocast over fp32 weights (the lean forward steps aside); the losses follow the
+    """run.mixed_precision=bf16: autocast over fp32 weights (the lean forward under it); the losses follow the
     fp32 run's closely and final/ holds fp32 weights."""
     from posttrain.models import load_model
 
