@@ -36,7 +36,9 @@ def run_once(seed: int, threads: int, record: Path, select: str | None = None, r
     env = dict(os.environ, POSTTRAIN_TEST_SEED=str(seed), POSTTRAIN_TEST_THREADS=str(threads),
                POSTTRAIN_MARGINS=str(record))
     marks = "learning" if real else "learning and not real"
-    cmd = [sys.executable, "-m", "pytest", "-q", "-m", marks, "-p", "no:cacheprovider", "tests"]
+    # one xdist worker per core at one thread each; a 2-thread pass runs in one process (2 x 2 threads would crawl)
+    cmd = [sys.executable, "-m", "pytest", "-q", "-m", marks, "-p", "no:cacheprovider", "-n",
+           "auto" if threads == 1 else "0", "tests"]
     if select:
         cmd += ["-k", select]
     t0 = time.time()

@@ -1,5 +1,7 @@
 """Fixtures every test folder shares: torch's thread count, a tiny model built once per session, JSONL files.
 
+- Workers: the suite runs under pytest-xdist, one worker per core, each with one torch thread (`WORKERS`; a
+  single process, `-n 0`, keeps torch's default).
 - `_restore_torch_threads` (automatic): runs here use run.threads=1 (light on shared CPUs) and some tests set
   threads themselves; every test gives the next one its thread count back.
 - `one_thread` (module scope; `pytestmark = pytest.mark.usefixtures("one_thread")`): one intra-op thread for a
@@ -29,6 +31,13 @@ from pathlib import Path
 import pytest
 import torch
 
+
+# pytest-xdist (pyproject's `-n auto`) runs one worker per core side by side: each uses ONE torch thread, here and in
+# every process a test starts (two 2-thread OpenMP teams on two cores run at a tenth of their speed).
+WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if WORKERS > 1:
+    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"
+    torch.set_num_threads(1)
 
 TEST_SEED = int(os.environ.get("POSTTRAIN_TEST_SEED", "0"))
 TEST_THREADS = int(os.environ["POSTTRAIN_TEST_THREADS"]) if os.environ.get("POSTTRAIN_TEST_THREADS") else None

@@ -13,6 +13,7 @@ Run it alone: `python -m pytest -m real` (~4 min on 2 cores after the one-off fe
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -24,7 +25,8 @@ from posttrain.cli import main
 pytestmark = pytest.mark.real
 HERE = Path(__file__).resolve().parent
 DIGITS = HERE.parent / "posttrain" / "grpo_verifiers.py"
-THREADS = "run.threads=2"  # CI runs one test at a time: the real tier uses both cores
+# both cores when the suite runs in one process (-n 0), one beside the other xdist workers (tests/conftest.py)
+THREADS = f"run.threads={1 if int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1')) > 1 else 2}"
 QUESTIONS = ["What is 7 + 5?", "Name a fruit that is yellow.", "Tom has 3 apples and buys 4 more. How many now?",
              "Write one word that rhymes with cat."]
 
