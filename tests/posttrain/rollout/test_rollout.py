@@ -103,8 +103,12 @@ def _tiny_config_model(kind: str):
     return model
 
 
+@pytest.mark.parametrize("packed", [True, False], ids=["packed", "plain"])
 @pytest.mark.parametrize("kind", ["tiny", "llama-gqa-scaled-rope", "mistral", "qwen2"])
-def test_lean_logits_match_hf_prefill_and_decode(kind, trained):
+def test_lean_logits_match_hf_prefill_and_decode(kind, packed, trained, monkeypatch):
+    from posttrain.lean import decode
+
+    monkeypatch.setattr(decode, "PACK", packed)
     model = trained[0] if kind == "tiny" else _tiny_config_model(kind)
     assert select_backend(model, 64)[0].name == "lean"
     V = model.config.vocab_size
@@ -119,6 +123,7 @@ def test_lean_logits_match_hf_prefill_and_decode(kind, trained):
     with torch.no_grad():
         ref = model(input_ids=ids2, attention_mask=am2, position_ids=pos2).logits  # (B, T+4, V)
     lean = LeanLlama(model)
+    assert lean.packed == packed  # the CPU torch wheels build oneDNN: packed weights wherever the suite runs
     with torch.inference_mode():
         lean.start(B, T + 4, T + 8)
         got = lean.prefill(ids, am.bool(), pos, torch.arange(B))
@@ -126,6 +131,51 @@ def test_lean_logits_match_hf_prefill_and_decode(kind, trained):
         for s in range(4):
             got = lean.decode(nxt[:, s:s + 1], pos2[:, T + s], T + s)
             torch.testing.assert_close(got, ref[:, T + s], atol=1e-4, rtol=0)
+
+
+@pytest.mark.parametrize("wdt", [None, torch.bfloat16], ids=["fp32", "bf16"])
+def test_packed_weights_give_the_plain_matmuls_numbers(wdt, monkeypatch):
+    """Packed (oneDNN-layout) fused weights: the same logits as plain matmuls over the same weights (fp32 within
+    fp32 rounding; bf16 weights: both round their matmul outputs to bf16), their dense form equals the plain
+    matrices exactly, and `load` after an update repacks (the refreshed engine equals a fresh one)."""
+    from posttrain.lean import decode
+
+    if wdt is not None and not decode.pack_available(wdt):  # oneDNN without bf16 kernels on this CPU
+        pytest.skip("no packed bf16 linear on this CPU")
+    model = _tiny_config_model("qwen2")  # biases on q/k/v too
+    V = model.config.vocab_size
+    g = torch.Generator().manual_seed(3)
+    ids, am = _left_pad([torch.randint(3, V, (n,), generator=g).tolist() for n in (4, 9, 7)])
+    pos = (am.cumsum(-1) - 1).clamp(min=0)
+    B, T = ids.shape
+    nxt = torch.randint(3, V, (B, 1), generator=g)
+
+    def run(packed):
+        monkeypatch.setattr(decode, "PACK", packed)
+        lean = LeanLlama(model, weight_dtype=wdt)
+        assert lean.packed == packed
+        with torch.inference_mode():
+            lean.start(B, T + 1, T + 4)
+            first = lean.prefill(ids, am.bool(), pos, torch.arange(B))
+            out = torch.cat([first, lean.decode(nxt, am.sum(-1), T)])
+        return lean, out
+
+    (plain, ref), (packed, got) = run(False), run(True)
+    assert packed.head_w.is_mkldnn and not plain.head_w.is_mkldnn
+    scale = float(ref.abs().max())
+    torch.testing.assert_close(got, ref, atol=(2e-5 if wdt is None else 2e-2) * scale, rtol=0)
+    assert torch.equal(LeanLlama.dense(packed.head_w), plain.head_w)
+    for a, b in zip(packed.layers, plain.layers):
+        for i in (1, 3, 6, 9):
+            assert torch.equal(LeanLlama.dense(a[i]), b[i]), i
+    with torch.no_grad():
+        for p in model.model.layers[0].mlp.parameters():
+            p.mul_(-2.0)
+        packed.load(model)
+    monkeypatch.setattr(decode, "PACK", False)
+    fresh = LeanLlama(model, weight_dtype=wdt)
+    assert torch.equal(LeanLlama.dense(packed.layers[0][6]), fresh.layers[0][6])
+    assert torch.equal(LeanLlama.dense(packed.layers[0][9]), fresh.layers[0][9])
 
 
 def test_lean_prefill_chunks_match_hf(trained):
@@ -232,8 +282,9 @@ def test_bf16_engine_is_selected_cached_and_refreshed(trained, bf16_rollouts):
     after = generate(model, tok, prompts, greedy=True, max_new_tokens=8)
     fresh = LeanLlama(model, weight_dtype=torch.bfloat16)
     assert select_backend(model, 64)[0] is not fresh
-    torch.testing.assert_close(select_backend(model, 64)[0].head_w, fresh.head_w)  # refreshed in place
-    torch.testing.assert_close(select_backend(model, 64)[0].layers[0][6], fresh.layers[0][6])
+    dense = LeanLlama.dense
+    torch.testing.assert_close(dense(select_backend(model, 64)[0].head_w), dense(fresh.head_w))  # refreshed
+    torch.testing.assert_close(dense(select_backend(model, 64)[0].layers[0][6]), dense(fresh.layers[0][6]))
     assert [r.completion_ids for r in after] != [r.completion_ids for r in before]
 
 
