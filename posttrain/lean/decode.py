@@ -13,7 +13,8 @@ It exposes the calls the engine's loop uses (as `posttrain.rollout.backends.HFFo
   ((H+2Hkv)*Dh, d) matrix and gate/up into one (2I, d) matrix, (out, in) as nn.Linear keeps them; each
   RMSNorm weight (times sqrt(d)) and the softmax scale 1/sqrt(Dh) are folded into the matrix that follows,
   so a norm is 3 small ops (x / hypot(|x|, sqrt(d*eps))).
-- Packed weights on CPU (`pack_available`): each fused matrix is reordered once per `load` into oneDNN's
+- Packed weights on CPU (`pack_available`, hidden size >= PACK_MIN_HIDDEN): each fused matrix is reordered
+  once per `load` into oneDNN's
   blocked layout and multiplied by its linear kernel (`torch.ops.mkldnn`), which skips the repacking a
   plain matmul does on every call: ~1.8x the decode throughput of plain fp32 matmuls on SmolLM2 at batch 16.
   Same numbers within fp32 rounding (tested); `dense(w)` converts one back.
@@ -66,6 +67,10 @@ from .support import rope_cis, rope_pair_order
 # probe disagrees with F.linear, plain matmuls are used.
 PACK = os.environ.get("POSTTRAIN_ENGINE_PACK", "1").strip().lower() not in ("0", "false", "no", "off")
 PACK_BATCH_HINT = 16  # rows the layout is tuned for (any row count works: decode shrinks, prefill is long)
+# Narrower models multiply plain: there the oneDNN call's fixed cost outweighs the repacking it saves
+# (Intel Xeon, 2 threads, packed / plain tokens/s: tiny d=128 fp32 0.48-0.89x, small d=384 fp32 0.59-1.02x at
+# batch 1-32, bf16 1.0-1.25x; SmolLM2 d=576 fp32 1.11-1.16x at batch 16-32; RESULTS.md, "Lean forwards").
+PACK_MIN_HIDDEN = 512
 _PACK_OK: dict = {}
 
 
@@ -131,7 +136,7 @@ class LeanLlama:
             return torch.tensor(math.sqrt(d * float(norm.variance_epsilon)), device=self.device, dtype=self.dtype)
 
         # Packed weights (CPU): oneDNN's blocked layout for its linear kernel, made once per `load`.
-        self.packed = self.device.type == "cpu" and pack_available(wdt)
+        self.packed = self.device.type == "cpu" and d >= PACK_MIN_HIDDEN and pack_available(wdt)
 
         def buf(rows, cols_):  # (out, in): a dense matrix `load` writes, or a placeholder it replaces (packed)
             shape = (rows, cols_)

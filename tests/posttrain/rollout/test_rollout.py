@@ -109,6 +109,7 @@ def test_lean_logits_match_hf_prefill_and_decode(kind, packed, trained, monkeypa
     from posttrain.lean import decode
 
     monkeypatch.setattr(decode, "PACK", packed)
+    monkeypatch.setattr(decode, "PACK_MIN_HIDDEN", 0)  # the tiny configs are narrower than the default
     model = trained[0] if kind == "tiny" else _tiny_config_model(kind)
     assert select_backend(model, 64)[0].name == "lean"
     V = model.config.vocab_size
@@ -133,6 +134,21 @@ def test_lean_logits_match_hf_prefill_and_decode(kind, packed, trained, monkeypa
             torch.testing.assert_close(got, ref[:, T + s], atol=1e-4, rtol=0)
 
 
+def test_models_narrower_than_pack_min_hidden_multiply_plain_wider_ones_packed():
+    from transformers import LlamaConfig, LlamaForCausalLM
+
+    from posttrain.lean import decode
+
+    def model(d):
+        return LlamaForCausalLM(LlamaConfig(vocab_size=64, hidden_size=d, intermediate_size=2 * d,
+                                            num_hidden_layers=1, num_attention_heads=4, num_key_value_heads=2,
+                                            max_position_embeddings=64)).eval()
+
+    narrow, wide = model(decode.PACK_MIN_HIDDEN // 2), model(decode.PACK_MIN_HIDDEN)
+    assert not LeanLlama(narrow).packed and not LeanLlama(narrow).head_w.is_mkldnn
+    assert LeanLlama(wide).packed == decode.pack_available(torch.float32)  # true with the CPU torch wheels
+
+
 @pytest.mark.parametrize("wdt", [None, torch.bfloat16], ids=["fp32", "bf16"])
 def test_packed_weights_give_the_plain_matmuls_numbers(wdt, monkeypatch):
     """Packed (oneDNN-layout) fused weights: the same logits as plain matmuls over the same weights (fp32 within
@@ -142,6 +158,7 @@ def test_packed_weights_give_the_plain_matmuls_numbers(wdt, monkeypatch):
 
     if wdt is not None and not decode.pack_available(wdt):  # oneDNN without bf16 kernels on this CPU
         pytest.skip("no packed bf16 linear on this CPU")
+    monkeypatch.setattr(decode, "PACK_MIN_HIDDEN", 0)
     model = _tiny_config_model("qwen2")  # biases on q/k/v too
     V = model.config.vocab_size
     g = torch.Generator().manual_seed(3)
