@@ -50,11 +50,47 @@ def cpu_flags() -> set[str]:
 
 
 def native_bf16() -> bool:
-    """bf16 matmuls run natively here: a CUDA GPU with bf16 support, or a CPU with AVX512-BF16 or AMX-BF16
-    (there bf16 autocast is 2-3x the fp32 matmul rate; without them it emulates bf16 and is slower)."""
+    """bf16 matmuls run faster than fp32 ones here: a CUDA GPU with bf16 support, or a CPU with AVX512-BF16 or
+    AMX-BF16 on which `bf16_speedup()` measures at least BF16_MIN_SPEEDUP (Zen 4: bf16 autocast 1.4-2.9x the
+    fp32 matmul rate). The flags alone do not say it: an Intel Xeon (family 6 model 207, AVX512-BF16 listed,
+    AMX not exposed to the VM) ran bf16 matmuls at 0.5-0.98x fp32 (RESULTS.md, "bf16 on CPU"); CPUs without
+    the flags emulate bf16 and are slower still (no probe is run there)."""
     if torch.cuda.is_available():
         return bool(torch.cuda.is_bf16_supported())
-    return bool({"avx512_bf16", "amx_bf16"} & cpu_flags())
+    return bool({"avx512_bf16", "amx_bf16"} & cpu_flags()) and bf16_speedup() >= BF16_MIN_SPEEDUP
+
+
+BF16_MIN_SPEEDUP = 1.2  # below this, bf16's rounding buys too little time to be worth choosing automatically
+_bf16_speedups: dict[int, float] = {}
+
+
+def bf16_speedup() -> float:
+    """fp32 time / bf16 time of CPU matmuls at a decode shape (16 x 576 by 576 x 1536) and a training shape
+    (256 x 576 by 576 x 1536), the smaller of the two (medians of 15 and 5 alternating calls, ~50 ms in all);
+    measured once per process and torch thread count (what `native_bf16` and so `auto` settings decide by)."""
+    threads = torch.get_num_threads()
+    if threads not in _bf16_speedups:
+        _bf16_speedups[threads] = min(_matmul_time_ratio(rows, reps=reps) for rows, reps in ((16, 15), (256, 5)))
+    return _bf16_speedups[threads]
+
+
+def _matmul_time_ratio(rows: int, k: int = 576, n: int = 1536, reps: int = 5) -> float:
+    import time
+
+    g = torch.Generator().manual_seed(0)
+    x, w = torch.randn(rows, k, generator=g), torch.randn(n, k, generator=g)
+    pairs = {torch.float32: (x, w), torch.bfloat16: (x.bfloat16(), w.bfloat16())}
+    times: dict = {dt: [] for dt in pairs}
+    with torch.no_grad():
+        for dt, (a, b) in pairs.items():  # warm-up: the kernels' one-off setup
+            torch.nn.functional.linear(a, b)
+        for _ in range(reps):
+            for dt, (a, b) in pairs.items():
+                t = time.perf_counter()
+                torch.nn.functional.linear(a, b)
+                times[dt].append(time.perf_counter() - t)
+    med = {dt: sorted(ts)[len(ts) // 2] for dt, ts in times.items()}
+    return med[torch.float32] / max(med[torch.bfloat16], 1e-9)
 
 
 def mixed_precision(setting: str) -> str | None:

@@ -269,19 +269,38 @@ def test_resume_run_fresh_missing_and_restored(tmp_path):
     assert [r["step"] for r in loop.iter_jsonl(tmp_path / "metrics.jsonl")] == [1, 2]
 
 
-def test_mixed_precision_auto_is_bf16_only_where_the_hardware_has_it(monkeypatch):
+def test_mixed_precision_auto_is_bf16_only_where_the_hardware_has_it_and_it_measures_faster(monkeypatch):
     from posttrain import runtime
 
+    probes = []
     monkeypatch.setattr(runtime.torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(runtime, "_bf16_speedups", {})
+    monkeypatch.setattr(runtime, "_matmul_time_ratio", lambda rows, **kw: probes.append(rows) or speed[rows])
+    speed = {16: 1.5, 256: 2.4}  # Zen 4-like
     monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f", "avx512_bf16"})
     assert runtime.native_bf16() and runtime.mixed_precision("auto") == "bf16"
+    assert runtime.bf16_speedup() == 1.5 and probes == [16, 256]  # the smaller ratio; measured once per process
     monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "amx_bf16", "amx_tile"})
-    assert runtime.mixed_precision("auto") == "bf16"
-    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f"})  # Zen 3 / older Intel: emulated bf16
+    assert runtime.mixed_precision("auto") == "bf16" and probes == [16, 256]
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f", "avx512_bf16"})
+    monkeypatch.setattr(runtime, "_bf16_speedups", {})
+    speed = {16: 1.1, 256: 0.6}  # the Intel Xeon whose flags list AVX512-BF16 without AMX
     assert not runtime.native_bf16() and runtime.mixed_precision("auto") is None
-    assert runtime.mixed_precision("bf16") == "bf16" and runtime.mixed_precision("no") is None
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f"})  # Zen 3 / older Intel: emulated bf16
+    monkeypatch.setattr(runtime, "_bf16_speedups", {})
+    assert not runtime.native_bf16() and runtime.mixed_precision("auto") is None and probes == [16, 256, 16, 256]
+    assert runtime.mixed_precision("bf16") == "bf16" and runtime.mixed_precision("no") is None  # no probe: as set
     with pytest.raises(ValueError, match="run.mixed_precision must be no, bf16 or auto"):
         runtime.mixed_precision("fp8")
+
+
+def test_the_bf16_probe_measures_a_positive_ratio_once_per_thread_count(monkeypatch):
+    from posttrain import runtime
+
+    monkeypatch.setattr(runtime, "_bf16_speedups", {})
+    first = runtime.bf16_speedup()
+    assert 0 < first < 100 and runtime.bf16_speedup() == first  # cached: the second call does not re-measure
+    assert list(runtime._bf16_speedups) == [runtime.torch.get_num_threads()]
 
 
 def test_progress_prints_only_long_phases_throttled_with_an_eta():

@@ -103,3 +103,20 @@ def test_bf16_mixed_precision_trains_fp32_weights_with_nearly_the_fp32_losses(tm
     assert losses["bf16"] == pytest.approx(losses["no"], rel=0.02), losses  # bf16 keeps ~3 significant digits
     assert losses["bf16"] != losses["no"]  # it really ran in bf16
     assert load_model(tmp_path / "bf16" / "tiny-summarize" / "sft" / "final").dtype == torch.float32
+
+
+@pytest.mark.parametrize("ratio", [0.6, 2.0])
+def test_mixed_precision_auto_says_what_the_bf16_probe_measured_and_follows_it(tmp_path, capsys, monkeypatch, ratio):
+    """run.mixed_precision=auto on a CPU whose flags list AVX512-BF16: the run prints the measured bf16 / fp32
+    matmul ratio and autocasts only when it clears runtime.BF16_MIN_SPEEDUP (here the probe is replaced)."""
+    from posttrain import runtime
+
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx512f", "avx512_bf16"})
+    monkeypatch.setattr(runtime, "_bf16_speedups", {})
+    monkeypatch.setattr(runtime, "_matmul_time_ratio", lambda rows, **kw: ratio)
+    assert main(["sft", "--recipe", "tiny-summarize", f"run.output_dir={tmp_path}", "max_steps=1", "final_eval_rows=0",
+                 "run.threads=1", "run.mixed_precision=auto"] + FAST[:5]) == 0
+    out = capsys.readouterr().out
+    chosen = "bf16" if ratio > runtime.BF16_MIN_SPEEDUP else "fp32"
+    assert f"run.mixed_precision=auto: bf16 matmuls measured {ratio:.2f}x fp32 here ({chosen};" in out
+    assert ("[run] bf16 autocast over fp32 weights" in out) == (chosen == "bf16")
