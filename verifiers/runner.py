@@ -423,8 +423,14 @@ class VerifierPool:
         while len(self._pool) < n_workers:
             self._pool.append(self._spawn())
         remaining = sum(1 for r in results if r is None)
+        # A verifier that raises: the error of the lowest item index is the one re-raised, whichever worker
+        # reported first. Chunks go out in index order, so once an item raised, the chunks already out finish
+        # (or raise) and pending ones of higher indices are dropped; then the lowest is raised.
+        errors: list[VerifierError] = []
         try:
             while remaining:
+                if errors and not pending and not any(w.state in ("busy", "installing") for w in self._pool):
+                    break
                 now = time.monotonic()
                 for k, w in enumerate(self._pool):
                     if w.state == "dead":
@@ -466,7 +472,16 @@ class VerifierPool:
                         except (EOFError, OSError):
                             broken = True
                             break
-                        remaining -= self._handle(w, msg, name, limit, results, pending)
+                        try:
+                            remaining -= self._handle(w, msg, name, limit, results, pending)
+                        except VerifierError as e:
+                            if e.index is None:  # the verifier did not load: nothing else can run
+                                raise
+                            errors.append(e)
+                            lowest = min(x.index for x in errors)
+                            kept = [ch for ch in pending if ch[0][0] < lowest]
+                            pending.clear()
+                            pending.extend(kept)
                     if broken or w.proc.sentinel in ready:
                         if not w.proc.is_alive() or broken:
                             remaining -= self._handle_death(w, name, results, pending)
@@ -474,6 +489,8 @@ class VerifierPool:
                 for w in active:
                     if w.state in ("busy", "installing") and now >= w.deadline:
                         remaining -= self._handle_timeout(w, name, limit, results, pending)
+            if errors:
+                raise min(errors, key=lambda e: e.index)
         except BaseException:
             # a verifier bug or Ctrl-C: busy workers hold stale work, replace them
             for w in self._pool:

@@ -37,6 +37,9 @@ class Misbehaving(Verifier):
             raise MemoryError()
         if completion == "raise":
             raise ValueError(f"bad reference {reference!r}")
+        if completion == "slow-raise":  # raises after the other worker's item has raised
+            time.sleep(0.3)
+            raise ValueError(f"bad reference {reference!r}")
         if completion == "not-a-verdict":
             return 1.0
         return Verdict(1.0, "ok", {"completion": completion, "pid": os.getpid()})
@@ -110,6 +113,17 @@ def test_verifier_exception_propagates_with_name_and_index():
         assert "in check" in err.remote_traceback
         # the pool is still usable afterwards
         assert [o.reason for o in pool.score(Misbehaving(), ["x", "y"], [0, 0])] == ["ok", "ok"]
+
+
+def test_of_several_raising_items_the_lowest_index_is_reported_whichever_worker_is_first():
+    """Workers race: the item re-raised is the first one in the batch that raises, every time (a CI run of the
+    preflight saw row 2 reported where row 1 had raised too)."""
+    with VerifierPool(workers=2, timeout_s=5, chunk_size=1) as pool:
+        for _ in range(4):
+            with pytest.raises(VerifierError) as info:
+                pool.score(Misbehaving(), ["a", "slow-raise", "raise", "raise", "b", "raise"], list(range(6)))
+            assert info.value.index == 1 and str(info.value).endswith("bad reference 1")
+        assert [o.reason for o in pool.score(Misbehaving(), ["x", "y", "z"], [0, 0, 0])] == ["ok"] * 3
 
 
 def test_non_verdict_result_is_a_verifier_bug():
