@@ -39,6 +39,22 @@ if WORKERS > 1:
     os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"
     torch.set_num_threads(1)
 
+
+
+def pytest_collection_modifyitems(config, items):
+    """Long modules first: the real tier, then modules with `slow` tests, then the rest (each group, and each
+    module, in collection order). pytest-xdist hands modules out in this order (--dist loadscope), so a long
+    module no longer starts last and runs alone while the other worker idles."""
+    def module(item):
+        return item.nodeid.split("::")[0]
+
+    rank: dict[str, int] = {}
+    for item in items:
+        r = 0 if item.get_closest_marker("real") else 1 if item.get_closest_marker("slow") else 2
+        rank[module(item)] = min(rank.get(module(item), 2), r)
+    items.sort(key=lambda item: rank[module(item)])  # stable: a module's tests stay together, in order
+
+
 TEST_SEED = int(os.environ.get("POSTTRAIN_TEST_SEED", "0"))
 TEST_THREADS = int(os.environ["POSTTRAIN_TEST_THREADS"]) if os.environ.get("POSTTRAIN_TEST_THREADS") else None
 
