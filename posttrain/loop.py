@@ -39,7 +39,7 @@ import torch
 
 from posttrain.data import token_groups  # noqa: F401  (micro-batches by tokens; importable from here)
 from posttrain.errors import TrainingError  # noqa: F401  (raised here; importable from here as before)
-from posttrain.runtime import BF16_MIN_SPEEDUP, bf16_speedup, has_accelerator_device, set_threads, tune_malloc
+from posttrain.runtime import BF16_MIN_SPEEDUP, bf16_measured, has_accelerator_device, set_threads, tune_malloc
 from posttrain.runtime import mixed_precision as resolve_mixed_precision
 from posttrain.trackers import Trackers, flat_config
 
@@ -96,8 +96,9 @@ def start_run(res, seed: int, resume: bool, check: Callable[[Any], None] | None 
         check(accelerator)
     say = main_printer(accelerator)
     set_progress_quiet(res.run.quiet or not accelerator.is_main_process)
-    if res.run.mixed_precision == "auto" and accelerator.device.type == "cpu" and _bf16_probed():
-        say(f"[run] run.mixed_precision=auto: bf16 matmuls measured {bf16_speedup():.2f}x fp32 here "
+    measured = bf16_measured() if res.run.mixed_precision == "auto" and accelerator.device.type == "cpu" else None
+    if measured is not None:  # the probe ran (the CPU lists bf16 units): say what it decided
+        say(f"[run] run.mixed_precision=auto: bf16 matmuls measured {measured:.2f}x fp32 here "
             f"({'bf16' if accelerator.mixed_precision == 'bf16' else 'fp32'}; bf16 needs >= {BF16_MIN_SPEEDUP}x)")
     if accelerator.mixed_precision != "no":
         say(f"[run] {accelerator.mixed_precision} autocast over fp32 weights (run.mixed_precision="
@@ -107,12 +108,6 @@ def start_run(res, seed: int, resume: bool, check: Callable[[Any], None] | None 
         save_resolved(res, res.stage_dir() / "config.yaml")
     accelerator.wait_for_everyone()
     return accelerator, say
-
-
-def _bf16_probed() -> bool:
-    from posttrain import runtime
-
-    return torch.get_num_threads() in runtime._bf16_speedups
 
 
 def global_sum(accelerator, value: float) -> float:

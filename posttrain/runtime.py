@@ -74,6 +74,11 @@ def bf16_speedup() -> float:
     return _bf16_speedups[threads]
 
 
+def bf16_measured() -> float | None:
+    """`bf16_speedup()` if it was measured at the current thread count (None: no probe ran)."""
+    return _bf16_speedups.get(torch.get_num_threads())
+
+
 def _matmul_time_ratio(rows: int, k: int = 576, n: int = 1536, reps: int = 5) -> float:
     import time
 

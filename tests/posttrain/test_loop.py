@@ -298,7 +298,9 @@ def test_the_bf16_probe_measures_a_positive_ratio_once_per_thread_count(monkeypa
     from posttrain import runtime
 
     monkeypatch.setattr(runtime, "_bf16_speedups", {})
+    assert runtime.bf16_measured() is None
     first = runtime.bf16_speedup()
+    assert runtime.bf16_measured() == first  # what the run prints
     assert 0 < first < 100 and runtime.bf16_speedup() == first  # cached: the second call does not re-measure
     assert list(runtime._bf16_speedups) == [runtime.torch.get_num_threads()]
 
