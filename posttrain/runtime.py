@@ -8,6 +8,7 @@ from __future__ import annotations
 import ctypes
 import os
 import sys
+import time
 
 import torch
 
@@ -53,7 +54,7 @@ def native_bf16() -> bool:
     """bf16 matmuls run faster than fp32 ones here: a CUDA GPU with bf16 support, or a CPU with AVX512-BF16 or
     AMX-BF16 on which `bf16_speedup()` measures at least BF16_MIN_SPEEDUP (Zen 4: bf16 autocast 1.4-2.9x the
     fp32 matmul rate). The flags alone do not say it: an Intel Xeon (family 6 model 207, AVX512-BF16 listed,
-    AMX not exposed to the VM) ran bf16 matmuls at 0.5-0.98x fp32 (RESULTS.md, "bf16 on CPU"); CPUs without
+    AMX not exposed to the VM) ran bf16 matmuls at 0.5-0.98x fp32 (RESULTS.md, "bf16 on a CPU whose flags list AVX512-BF16 but whose bf16 matmuls are slow"); CPUs without
     the flags emulate bf16 and are slower still (no probe is run there)."""
     if torch.cuda.is_available():
         return bool(torch.cuda.is_bf16_supported())
@@ -80,8 +81,6 @@ def bf16_measured() -> float | None:
 
 
 def _matmul_time_ratio(rows: int, k: int = 576, n: int = 1536, reps: int = 5) -> float:
-    import time
-
     g = torch.Generator().manual_seed(0)
     x, w = torch.randn(rows, k, generator=g), torch.randn(n, k, generator=g)
     pairs = {torch.float32: (x, w), torch.bfloat16: (x.bfloat16(), w.bfloat16())}

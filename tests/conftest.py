@@ -40,7 +40,6 @@ if WORKERS > 1:
     torch.set_num_threads(1)
 
 
-
 def pytest_collection_modifyitems(config, items):
     """Long modules first: the real tier, then modules with `slow` tests, then the rest (each group, and each
     module, in collection order). pytest-xdist hands modules out in this order (--dist loadscope), so a long

@@ -14,10 +14,9 @@ It exposes the calls the engine's loop uses (as `posttrain.rollout.backends.HFFo
   RMSNorm weight (times sqrt(d)) and the softmax scale 1/sqrt(Dh) are folded into the matrix that follows,
   so a norm is 3 small ops (x / hypot(|x|, sqrt(d*eps))).
 - Packed weights on CPU (`pack_available`, hidden size >= PACK_MIN_HIDDEN): each fused matrix is reordered
-  once per `load` into oneDNN's
-  blocked layout and multiplied by its linear kernel (`torch.ops.mkldnn`), which skips the repacking a
-  plain matmul does on every call: ~1.8x the decode throughput of plain fp32 matmuls on SmolLM2 at batch 16.
-  Same numbers within fp32 rounding (tested); `dense(w)` converts one back.
+  once per `load` into oneDNN's blocked layout and multiplied by its linear kernel (`torch.ops.mkldnn`),
+  which skips the repacking a plain matmul does on every call: ~1.8x the decode throughput of plain fp32
+  matmuls on SmolLM2 at batch 16. Same numbers within fp32 rounding (tested); `dense(w)` converts one back.
 - RoPE: the q/k rows of each head are permuted from the half-split pairing (x_i, x_{i+Dh/2}) that
   `rotate_half` uses to interleaved pairs, so rotating is one complex multiply by a
   (position, Dh/2) table built from the module's own `inv_freq` and `attention_scaling` with the

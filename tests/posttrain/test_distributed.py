@@ -32,7 +32,7 @@ def _assert_same_weights(w1: dict, w2: dict, start: dict, rel: float = 1e-3) -> 
     """The final weights of two runs that differ only by float summation order: the norm of their difference is
     a small fraction of how far training moved them. Not a per-element bound: Adam divides each gradient by its
     own root mean square, so an element whose gradient is at the level of the summation noise moves by up to
-    the learning rate in either direction (a fresh Zen 4 CI run saw one element 1.05e-4 apart with lr 1e-3
+    the learning rate in either direction (a CI run saw one element 1.05e-4 apart with lr 1e-3
     while the rest agreed to 3e-5); the norm carries such elements at their weight."""
     assert sorted(w1) == sorted(w2) and set(w1) <= set(start)
     diff = sum(float((w1[k] - w2[k]).double().pow(2).sum()) for k in w1) ** 0.5
