@@ -383,15 +383,20 @@ def main(argv: list[str] | None = None) -> int:
         check_stage_sections(res, {name: st.load()[0] for name, st in STAGES.items() if name in res.raw_recipe})
         from dataclasses import asdict
 
+        from posttrain import runtime
+        from posttrain.loop import recorded_bf16
         from posttrain.rollout import configure
 
-        configure(**asdict(res.rollout))  # every stage of this command generates through it (vllm: checked here)
-        _quiet_libraries()
+        if getattr(res.stage_cfg, "resume", False):  # a resumed run keeps the bf16 decision its `auto` settings made
+            runtime.pin_bf16(recorded_bf16(res.stage_dir()))
         try:
+            configure(**asdict(res.rollout))  # every stage of this command generates through it (vllm: checked here)
+            _quiet_libraries()
             final = run(res, lambda name, model=None: ensure_stage(res, name, model))
             _card(final, res, ["posttrain", *argv])
         finally:
             configure()  # the process-wide defaults again (a caller of main() generates as before)
+            runtime.pin_bf16(None)
         return 0
     except Exception as e:  # user errors: one line, no traceback
         from posttrain.data import DataError

@@ -4,7 +4,8 @@ Every trainer composes these; none of them owns the loop. The same code runs on 
 process and under `accelerate launch` (DDP/FSDP/DeepSpeed): the Accelerator decides.
 
 - `setup(seed, threads)`: seeds python/numpy/torch, tunes glibc malloc, creates the `Accelerator`.
-- `start_run(res, seed, resume)`: `setup`, then the run directory and its config.yaml (main process);
+- `start_run(res, seed, resume)`: `setup`, then the run directory and its config.yaml (main process), and
+  with an `auto` precision setting precision.json, the bf16 decision that a resume keeps (`recorded_bf16`);
   returns the accelerator and `say` (prints on the main process only).
 - `resume_run(...)`: with resume=true, the newest checkpoint restored in place and the metrics rows
   logged after it dropped; returns its step and extra state (step 0 when starting fresh).
@@ -38,8 +39,9 @@ import numpy as np
 import torch
 
 from posttrain.data import token_groups  # noqa: F401  (micro-batches by tokens; importable from here)
-from posttrain.errors import TrainingError  # noqa: F401  (raised here; importable from here as before)
-from posttrain.runtime import BF16_MIN_SPEEDUP, bf16_measured, has_accelerator_device, set_threads, tune_malloc
+from posttrain.errors import ConfigError, TrainingError  # noqa: F401  (TrainingError: importable from here as before)
+from posttrain.runtime import (BF16_MIN_SPEEDUP, bf16_forced, bf16_measured, has_accelerator_device, native_bf16,
+                               set_threads, tune_malloc)
 from posttrain.runtime import mixed_precision as resolve_mixed_precision
 from posttrain.trackers import Trackers, flat_config
 
@@ -96,8 +98,12 @@ def start_run(res, seed: int, resume: bool, check: Callable[[Any], None] | None 
         check(accelerator)
     say = main_printer(accelerator)
     set_progress_quiet(res.run.quiet or not accelerator.is_main_process)
-    measured = bf16_measured() if res.run.mixed_precision == "auto" and accelerator.device.type == "cpu" else None
-    if measured is not None:  # the probe ran (the CPU lists bf16 units): say what it decided
+    auto = "auto" in (res.run.mixed_precision, res.rollout.dtype)
+    forced = bf16_forced() if auto else None
+    measured = bf16_measured() if auto and forced is None and accelerator.device.type == "cpu" else None
+    if forced is not None:
+        say(f"[run] the auto settings use {'bf16' if forced[0] else 'fp32'}: {forced[1]}")
+    elif measured is not None and res.run.mixed_precision == "auto":  # the probe ran (the CPU lists bf16 units)
         say(f"[run] run.mixed_precision=auto: bf16 matmuls measured {measured:.2f}x fp32 here "
             f"({'bf16' if accelerator.mixed_precision == 'bf16' else 'fp32'}; bf16 needs >= {BF16_MIN_SPEEDUP}x)")
     if accelerator.mixed_precision != "no":
@@ -106,8 +112,31 @@ def start_run(res, seed: int, resume: bool, check: Callable[[Any], None] | None 
     if accelerator.is_main_process:
         prepare_run_dir(res.stage_dir(), resume, say)
         save_resolved(res, res.stage_dir() / "config.yaml")
+        record = res.stage_dir() / PRECISION_FILE
+        if auto and not (resume and record.exists()):  # what `auto` chose, for a resume to keep (recorded_bf16)
+            write_json(record, {"bf16": native_bf16(), "decided_by": forced[1] if forced else
+                                "probe" if measured is not None else "hardware", "bf16_speedup": measured,
+                                "threads": torch.get_num_threads()})
     accelerator.wait_for_everyone()
     return accelerator, say
+
+
+PRECISION_FILE = "precision.json"
+
+
+def recorded_bf16(run_dir: Path) -> bool | None:
+    """The bf16 decision of the `auto` settings that the run in `run_dir` started with (`start_run` records it in
+    precision.json), or None (no record: the run had no auto setting, or predates the record). The CLI pins it on
+    resume=true (`runtime.pin_bf16`), so the continued run computes in the precision it began in."""
+    path = Path(run_dir) / PRECISION_FILE
+    if not path.is_file():
+        return None
+    try:
+        value = json.loads(path.read_text()).get("bf16")
+    except (ValueError, AttributeError) as e:
+        raise ConfigError(f"{path}: not the JSON object posttrain wrote ({e}); delete it to let the resumed run "
+                          "decide bf16 afresh") from None
+    return value if isinstance(value, bool) else None
 
 
 def global_sum(accelerator, value: float) -> float:

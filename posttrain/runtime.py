@@ -1,6 +1,6 @@
 """What the process runs on: accelerator detection, weight dtypes, torch threads, glibc malloc tuning.
 
-The bottom layer with `posttrain.errors`: it imports nothing else of posttrain, so the config checks
+The bottom layer with `posttrain.errors` (the only module of posttrain it imports), so the config checks
 (`config.resolve` refuses half dtypes on CPU), the model loaders and `loop.setup` share one answer.
 """
 from __future__ import annotations
@@ -11,6 +11,8 @@ import sys
 import time
 
 import torch
+
+from posttrain.errors import ConfigError
 
 DTYPES: dict[str, torch.dtype] = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
 _malloc_tuned = False
@@ -55,10 +57,43 @@ def native_bf16() -> bool:
     AMX-BF16 on which `bf16_speedup()` measures at least BF16_MIN_SPEEDUP (Zen 4: bf16 autocast 1.4-2.9x the
     fp32 matmul rate). The flags alone do not say it: an Intel Xeon (family 6 model 207, AVX512-BF16 listed,
     AMX not exposed to the VM) ran bf16 matmuls at 0.5-0.98x fp32 (RESULTS.md, "bf16 on a CPU whose flags list AVX512-BF16 but whose bf16 matmuls are slow"); CPUs without
-    the flags emulate bf16 and are slower still (no probe is run there)."""
+    the flags emulate bf16 and are slower still (no probe is run there). `bf16_forced()` (POSTTRAIN_BF16, a
+    resumed run's recorded decision) answers first."""
+    forced = bf16_forced()
+    if forced is not None:
+        return forced[0]
     if torch.cuda.is_available():
         return bool(torch.cuda.is_bf16_supported())
     return bool({"avx512_bf16", "amx_bf16"} & cpu_flags()) and bf16_speedup() >= BF16_MIN_SPEEDUP
+
+
+BF16_ENV = "POSTTRAIN_BF16"
+_ENV_CHOICES = {"1": True, "on": True, "true": True, "0": False, "off": False, "false": False}
+_bf16_pinned: bool | None = None
+
+
+def bf16_forced() -> tuple[bool, str] | None:
+    """What decides the `auto` settings (run.mixed_precision, rollout.dtype) without a measurement, and why:
+    POSTTRAIN_BF16=1|0 in the environment (a user's explicit choice, e.g. for runs that must agree across
+    machines or loads), else a decision pinned by `pin_bf16` (a resumed run keeps the one it started with);
+    None: `native_bf16` decides by the hardware and the probe."""
+    value = os.environ.get(BF16_ENV, "").strip().lower()
+    if value:
+        if value not in _ENV_CHOICES:
+            raise ConfigError(f"{BF16_ENV}={value!r}: use 1 (bf16) or 0 (fp32) for the auto settings "
+                              "(run.mixed_precision, rollout.dtype), or unset it to let a probe decide")
+        return _ENV_CHOICES[value], f"{BF16_ENV}={value}"
+    if _bf16_pinned is not None:
+        return _bf16_pinned, "the decision recorded when this run started"
+    return None
+
+
+def pin_bf16(value: bool | None) -> None:
+    """Make `native_bf16()` answer `value` in this process without probing (None: decide again). The CLI pins a
+    resumed run's recorded decision, so a probe timed under another load cannot switch a run's precision
+    half-way (`loop.recorded_bf16`)."""
+    global _bf16_pinned
+    _bf16_pinned = value
 
 
 BF16_MIN_SPEEDUP = 1.2  # below this, bf16's rounding buys too little time to be worth choosing automatically

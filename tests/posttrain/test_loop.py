@@ -294,6 +294,49 @@ def test_mixed_precision_auto_is_bf16_only_where_the_hardware_has_it_and_it_meas
         runtime.mixed_precision("fp8")
 
 
+def test_posttrain_bf16_and_a_pinned_decision_answer_auto_without_a_probe(monkeypatch):
+    """POSTTRAIN_BF16=1|0 decides both auto settings on any machine, a pinned decision (a resumed run's) when it is
+    unset; neither runs the probe; a bad value is one clear error naming the variable."""
+    from posttrain import runtime
+    from posttrain.errors import ConfigError
+
+    def no_probe(rows, **kw):
+        raise AssertionError("the probe ran")
+
+    monkeypatch.setattr(runtime.torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(runtime, "_bf16_speedups", {})
+    monkeypatch.setattr(runtime, "_matmul_time_ratio", no_probe)
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f", "avx512_bf16"})
+    monkeypatch.setattr(runtime, "_bf16_pinned", None)
+    for value, bf16 in (("1", True), ("on", True), ("0", False), ("False", False)):
+        monkeypatch.setenv("POSTTRAIN_BF16", value)
+        assert runtime.native_bf16() is bf16 and runtime.mixed_precision("auto") == ("bf16" if bf16 else None)
+        assert runtime.bf16_forced() == (bf16, f"POSTTRAIN_BF16={value.lower()}")
+    runtime.pin_bf16(True)  # the environment beats a pin
+    assert runtime.native_bf16() is False
+    monkeypatch.setenv("POSTTRAIN_BF16", "yes please")
+    with pytest.raises(ConfigError, match=r"POSTTRAIN_BF16='yes please': use 1 \(bf16\) or 0 \(fp32\)"):
+        runtime.native_bf16()
+    monkeypatch.delenv("POSTTRAIN_BF16")
+    assert runtime.native_bf16() is True  # the pin, even on a CPU whose probe would say otherwise
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2"})
+    runtime.pin_bf16(False)
+    assert runtime.native_bf16() is False and runtime.mixed_precision("bf16") == "bf16"  # explicit settings win
+    runtime.pin_bf16(None)
+    assert runtime.native_bf16() is False and runtime.bf16_forced() is None  # decided by the flags again
+
+
+def test_recorded_bf16_reads_what_start_run_wrote_and_names_a_bad_file(tmp_path):
+    from posttrain.errors import ConfigError
+
+    assert loop.recorded_bf16(tmp_path) is None  # no record: no auto setting, or an older run
+    (tmp_path / loop.PRECISION_FILE).write_text(json.dumps({"bf16": True, "decided_by": "probe"}))
+    assert loop.recorded_bf16(tmp_path) is True
+    (tmp_path / loop.PRECISION_FILE).write_text("{not json")
+    with pytest.raises(ConfigError, match="precision.json: not the JSON object posttrain wrote"):
+        loop.recorded_bf16(tmp_path)
+
+
 def test_the_bf16_probe_measures_a_positive_ratio_once_per_thread_count(monkeypatch):
     from posttrain import runtime
 

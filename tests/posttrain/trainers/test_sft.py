@@ -120,3 +120,34 @@ def test_mixed_precision_auto_says_what_the_bf16_probe_measured_and_follows_it(t
     chosen = "bf16" if ratio > runtime.BF16_MIN_SPEEDUP else "fp32"
     assert f"run.mixed_precision=auto: bf16 matmuls measured {ratio:.2f}x fp32 here ({chosen};" in out
     assert ("[run] bf16 autocast over fp32 weights" in out) == (chosen == "bf16")
+
+
+def test_a_resumed_auto_run_keeps_the_bf16_decision_it_started_with(tmp_path, capsys, monkeypatch):
+    """The probe that decides `auto` is a timing: under another load a resumed run could measure the other side of
+    the threshold and switch precision half-way. The first run records its decision (precision.json); resume=true
+    keeps it whatever the probe says now; a fresh run decides afresh."""
+    from posttrain import runtime
+
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx512f", "avx512_bf16"})
+    monkeypatch.delenv("POSTTRAIN_BF16", raising=False)
+    common = ["sft", "--recipe", "tiny-summarize", f"run.output_dir={tmp_path}", "final_eval_rows=0", "save_every=1",
+              "run.threads=1", "run.mixed_precision=auto"] + FAST[:5]
+    run_dir = tmp_path / "tiny-summarize" / "sft"
+
+    def run(ratio: float, *extra: str) -> str:
+        monkeypatch.setattr(runtime, "_bf16_speedups", {})
+        monkeypatch.setattr(runtime, "_matmul_time_ratio", lambda rows, **kw: ratio)
+        assert main(common + list(extra)) == 0
+        return capsys.readouterr().out
+
+    assert "[run] bf16 autocast over fp32 weights" in run(2.0, "max_steps=1")
+    assert json.loads((run_dir / "precision.json").read_text()) == {"bf16": True, "decided_by": "probe",
+                                                                     "bf16_speedup": 2.0, "threads": 1}
+    out = run(0.6, "max_steps=2", "resume=true")  # the probe would now say fp32
+    assert "the auto settings use bf16: the decision recorded when this run started" in out
+    assert "[run] bf16 autocast over fp32 weights" in out and "resumed from" in out
+    assert json.loads((run_dir / "precision.json").read_text())["bf16_speedup"] == 2.0  # the record is kept
+    out = run(0.6, "max_steps=1")  # a fresh run: the probe decides
+    assert "[run] bf16 autocast over fp32 weights" not in out and "(fp32; bf16 needs" in out
+    assert json.loads((run_dir / "precision.json").read_text())["bf16"] is False
+    assert runtime.bf16_forced() is None  # the pin ends with the command
