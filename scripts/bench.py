@@ -39,7 +39,9 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             ours against TRL's on it (word-math rows through the chat template; SFT / DPO batch 4, GRPO 2 prompts x
             4 x <= 64 tokens, lr 1e-7 so that neither side's completions shrink under the length reward during
             the run; each side's mean completion length is printed), each fp32 and with bf16 on both sides (ours
-            run.mixed_precision=bf16, GRPO also rollout.dtype=bfloat16; TRL bf16=True). ~20 min in all.
+            run.mixed_precision=bf16, GRPO also rollout.dtype=bfloat16; TRL bf16=True). ~20 min in all. The bf16
+            rows run where bf16 is native and faster (`--real-bf16 auto`, the default: what run.mixed_precision=auto
+            decides); on other CPUs bf16 is emulated, 2-5x slower than fp32, and `--real-bf16 yes` forces them.
   scaling   how cost grows with model size (--presets, default tiny and small) and sequence length: the
             rollout engine (batch 16, 32-token prompts, 64/128/256 new tokens; 64/128 with --quick) and a
             training step (forward + backward + AdamW on batch 8 of 64/128/256 tokens), tokens/s, time
@@ -1310,9 +1312,15 @@ def bench_real(args) -> dict:
         print(f"skipped: no model directory at {args.real} (posttrain models fetch smollm2-135m-instruct {args.real})")
         return {"skipped": str(args.real)}
     from posttrain.rollout import engine as eng
+    from posttrain.runtime import native_bf16
 
+    args.bf16_rows = args.real_bf16 == "yes" or (args.real_bf16 == "auto" and native_bf16())
+    if not args.bf16_rows:
+        print("bf16 rows skipped (--real-bf16 yes runs them): " + ("--real-bf16 no" if args.real_bf16 == "no" else
+              "bf16 is not native and faster on this machine (runtime.native_bf16: run.mixed_precision=auto and "
+              "rollout.dtype=auto run fp32 here)"))
     tok, model = _real_base(args)
-    models = {"float32": model, "bfloat16": copy.deepcopy(model)}
+    models = {"float32": model, "bfloat16": copy.deepcopy(model) if args.bf16_rows else None}
     M = args.max_new_tokens
     print(f"{args.real}: {count_parameters(model) / 1e6:.1f}M parameters; prompts: word-math held-out problems "
           f"through the chat template; sampling at T=1, exactly {M} new tokens per row")
@@ -1337,8 +1345,9 @@ def bench_real(args) -> dict:
             finally:
                 eng.configure()
 
-        runners = {"model.generate": hf, "fp32": functools.partial(engine, "float32"),
-                   "bf16": functools.partial(engine, "bfloat16")}
+        runners = {"model.generate": hf, "fp32": functools.partial(engine, "float32")}
+        if args.bf16_rows:
+            runners["bf16"] = functools.partial(engine, "bfloat16")
         for fn in runners.values():
             fn()  # warm-up, excluded
         times: dict[str, list[float]] = {k: [] for k in runners}
@@ -1347,11 +1356,11 @@ def bench_real(args) -> dict:
                 times[k].append(_timed(lambda: fn(seed=r) if k != "model.generate" else fn(r), args.device))
         med = {k: statistics.median(v) for k, v in times.items()}
         row = {"batch": B, "new_tokens": M, **{f"{k}_tok_s": B * M / t for k, t in med.items()},
-               "ratio_fp32": med["model.generate"] / med["fp32"], "ratio_bf16": med["model.generate"] / med["bf16"],
-               "times": times}
+               **{f"ratio_{k}": med["model.generate"] / med[k] for k in ("fp32", "bf16") if k in med}, "times": times}
         rows_out.append(row)
+        bf16_cols = f"{row['bf16_tok_s']:>15.0f} {row['ratio_bf16']:>6.2f}x" if "bf16" in med else f"{'-':>15} {'-':>7}"
         print(f"{B:>5} {row['model.generate_tok_s']:>15.0f} {row['fp32_tok_s']:>12.0f} {row['ratio_fp32']:>6.2f}x "
-              f"{row['bf16_tok_s']:>15.0f} {row['ratio_bf16']:>6.2f}x", flush=True)
+              f"{bf16_cols}", flush=True)
     print("ratio = model.generate time / engine time (medians of alternating runs; generate runs the fp32 model).")
 
     # one training step (forward + backward + AdamW) of the HF forward, fp32 and under bf16 autocast
@@ -1362,8 +1371,9 @@ def bench_real(args) -> dict:
     train_model = copy.deepcopy(model).train()
     opt = torch.optim.AdamW(train_model.parameters(), lr=1e-6)
     losses = {}
+    precisions = (False, True) if args.bf16_rows else (False,)  # bf16 autocast or not
     with torch.no_grad():  # the same weights, both precisions: how far bf16 autocast moves the loss
-        for a in (False, True):
+        for a in precisions:
             with torch.autocast(args.device, dtype=torch.bfloat16, enabled=a):
                 losses[a] = float(train_model(**enc, labels=labels).loss)
 
@@ -1374,22 +1384,23 @@ def bench_real(args) -> dict:
         opt.step()
         opt.zero_grad(set_to_none=True)
 
-    for a in (False, True):
+    for a in precisions:
         step(a)  # warm-up
-    t_step = {False: [], True: []}
+    t_step = {a: [] for a in precisions}
     for _ in range(max(2, args.repeats // 2)):
-        for a in (False, True):
+        for a in precisions:
             t_step[a].append(_timed(lambda: step(a), args.device))
-    fp32_s, bf16_s = statistics.median(t_step[False]), statistics.median(t_step[True])
+    fp32_s = statistics.median(t_step[False])
+    bf16_s = statistics.median(t_step[True]) if args.bf16_rows else None
     print(f"training step, batch 8 x {enc['input_ids'].shape[1]} tokens (HF forward + backward + AdamW): fp32 "
-          f"{fp32_s:.2f} s, bf16 autocast {bf16_s:.2f} s ({fp32_s / bf16_s:.2f}x); loss of the same weights fp32 "
-          f"{losses[False]:.4f}, bf16 autocast {losses[True]:.4f}")
+          f"{fp32_s:.2f} s" + (f", bf16 autocast {bf16_s:.2f} s ({fp32_s / bf16_s:.2f}x); loss of the same weights "
+                               f"fp32 {losses[False]:.4f}, bf16 autocast {losses[True]:.4f}" if bf16_s else ""))
     del train_model, opt
     gc.collect()
     return {"rows": rows_out, "train_step": {"tokens": int(enc["input_ids"].numel()), "fp32_s": fp32_s,
-                                             "loss_fp32": losses[False], "loss_bf16": losses[True],
-                                             "bf16_autocast_s": bf16_s, "speedup": fp32_s / bf16_s,
-                                             "times": {"fp32": t_step[False], "bf16": t_step[True]}},
+                                             "loss_fp32": losses[False], "loss_bf16": losses.get(True),
+                                             "bf16_autocast_s": bf16_s, "speedup": fp32_s / bf16_s if bf16_s else None,
+                                             "times": {"fp32": t_step[False], "bf16": t_step.get(True)}},
             "logprob_step": _real_logprob_step(args, model),
             "trainers": _real_trainers(args)}
 
@@ -1424,7 +1435,7 @@ def _real_logprob_step(args, model) -> dict:
         finally:
             support.ENABLED = was
 
-    variants = [(lean, bf16) for bf16 in (False, True) for lean in (False, True)]
+    variants = [(lean, bf16) for bf16 in ((False, True) if args.bf16_rows else (False,)) for lean in (False, True)]
     for v in variants:
         step(*v)  # warm-up
     times: dict = {v: [] for v in variants}
@@ -1456,8 +1467,9 @@ def _real_trainers(args) -> dict:
         out.setdefault(stage, {})[precision] = dict(trl_s_per_step=mt, ours_s_per_step=mo, ratio=mt / mo,
                                                     **(extra or {}))
 
+    precisions = (False, True) if args.bf16_rows else (False,)
     for stage, setup in (("sft", _sft_setup), ("dpo", _dpo_setup)):
-        for bf16 in (False, True):
+        for bf16 in precisions:
             ctx = setup(args, real=True, bf16=bf16)
             if ctx.trl_error is not None:
                 _trl_missing(ctx.trl_error)
@@ -1471,7 +1483,7 @@ def _real_trainers(args) -> dict:
             ctx.cleanup()
     ctx = _grpo_setup(args, real=True)
     try:
-        for bf16 in (False, True):
+        for bf16 in precisions:
             t_ours, phases = ctx.runners["posttrain"](bf16=bf16)
             t_trl = ctx.runners["trl"](bf16=bf16)
             mt, mo = statistics.median(t_trl), statistics.median(t_ours)
@@ -1531,6 +1543,10 @@ def main(argv=None) -> int:
     ap.add_argument("--real", type=Path, default=Path(__file__).resolve().parents[1] / "models" / "smollm2-135m-instruct",
                     help="model directory of the real section (default models/smollm2-135m-instruct)")
     ap.add_argument("--real-batches", default="1,16,32", help="comma-separated batch sizes (real)")
+    ap.add_argument("--real-bf16", choices=["auto", "yes", "no"], default="auto",
+                    help="the real section's bf16 rows: auto (only where bf16 is native and faster, as "
+                         "run.mixed_precision=auto decides; emulated bf16 makes them 2-5x slower than fp32 and "
+                         "triples the section's runtime), yes, no")
     ap.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # SECTION:IMPL, internal
     args = ap.parse_args(argv)
     args.argv = [a for a in argv]
