@@ -260,6 +260,41 @@ def _trl_common(args, tmp: str, batch: int, bf16: bool = False) -> dict:
                 dataloader_num_workers=0, seed=0, train_sampling_strategy="sequential")
 
 
+def _step_timer(device: str, metric: str | None = None):
+    """A TrainerCallback that times each of a TRL trainer's steps from on_step_begin to on_step_end (online trainers
+    generate inside the step), after a device sync. With `metric`, it also reads that step's value of one of TRL's
+    logged metrics from the trainer's metric store (set `.trainer` once the trainer exists; TRL clears the store
+    whenever it logs, so it is read at every step end); a step without it records nan."""
+    from transformers import TrainerCallback
+
+    class StepTimer(TrainerCallback):
+        def __init__(self):
+            self.times, self.values, self.t0, self.trainer = [], [], 0.0, None
+
+        def on_step_begin(self, *a, **k):
+            self.t0 = time.perf_counter()
+
+        def on_step_end(self, *a, **k):
+            _sync(device)
+            self.times.append(time.perf_counter() - self.t0)
+            if metric is not None:
+                m = getattr(self.trainer, "_metrics", {}).get("train", {}).get(metric)
+                self.values.append(m[-1] if m else float("nan"))
+
+    return StepTimer()
+
+
+def _cli_step_times(metrics_file: Path, phases: tuple[str, ...]) -> tuple[list[float], dict[str, float]]:
+    """Seconds per step of a run of one of our trainers through the CLI, from its metrics.jsonl (time/step:
+    sampling, scoring and update), the first 2 steps (warm-up) left out, and the median of each phase's time/<phase>
+    plus the mean completion length of the remaining steps."""
+    rows = [json.loads(l) for l in Path(metrics_file).read_text().splitlines()]
+    rows = [r for r in rows if "time/step" in r][2:]
+    medians = {k: statistics.median(r[f"time/{k}"] for r in rows) for k in phases}
+    medians["completion_tokens"] = statistics.mean(r["completion/length"] for r in rows)
+    return [r["time/step"] for r in rows], medians
+
+
 def _trl_missing(e: Exception) -> None:
     print(f"TRL not installed ({e}); `pip install -e '.[bench]'` to compare. Ours alone:")
 
@@ -975,17 +1010,12 @@ grpo:
                                  f"run.threads={args.threads}", "run.quiet=true", f"max_steps={steps}", *precision,
                                  *overrides])
         assert rc == 0, "posttrain grpo failed"
-        rows = [json.loads(l) for l in (root / "runs" / "bench-grpo" / "grpo" / "metrics.jsonl").read_text().splitlines()]
-        rows = [r for r in rows if "time/step" in r][2:]
-        phases = {k: statistics.median(r[f"time/{k}"] for r in rows) for k in ("sample", "score", "train")}
-        phases["completion_tokens"] = statistics.mean(r["completion/length"] for r in rows)
-        return [r["time/step"] for r in rows], phases
+        return _cli_step_times(root / "runs" / "bench-grpo" / "grpo" / "metrics.jsonl", ("sample", "score", "train"))
 
     ctx = SimpleNamespace(steps=steps, group=group, base=base, runners={"posttrain": ours}, trl_error=None,
                           cleanup=lambda: shutil.rmtree(root, ignore_errors=True))
     try:
         from datasets import Dataset
-        from transformers import TrainerCallback
         from trl import GRPOConfig as TRLConfig, GRPOTrainer
     except ImportError as e:
         ctx.trl_error = e
@@ -998,20 +1028,6 @@ grpo:
         return [length.check(c if isinstance(c, str) else "".join(m["content"] for m in c), None).score
                 for c in completions]
 
-    class StepTimer(TrainerCallback):
-        def __init__(self):
-            self.times, self.lengths, self.t0, self.trainer = [], [], 0.0, None
-
-        def on_step_begin(self, *a, **k):
-            self.t0 = time.perf_counter()
-
-        def on_step_end(self, *a, **k):
-            _sync(args.device)
-            self.times.append(time.perf_counter() - self.t0)
-            # the step's mean completion length, from TRL's metric store (it clears that store whenever it logs)
-            m = getattr(self.trainer, "_metrics", {}).get("train", {}).get("completions/mean_length")
-            self.lengths.append(m[-1] if m else float("nan"))
-
     trl_prompts = [[{"role": "user", "content": p}] for p in prompts] if real else prompts
 
     def trl_run(bf16: bool = False, **method) -> list[float]:
@@ -1021,7 +1037,7 @@ grpo:
                           bf16=bf16, fp16=False, **_no_checkpointing(), use_cpu=args.device == "cpu",
                           logging_strategy="no", save_strategy="no", report_to=[], disable_tqdm=True,
                           dataloader_num_workers=0, seed=0, **method)
-        timer = StepTimer()
+        timer = _step_timer(args.device, "completions/mean_length")  # the step's mean completion length too
         with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
             trainer = GRPOTrainer(model=copy.deepcopy(base), reward_funcs=[length_reward], args=targs,
                                   train_dataset=Dataset.from_list([{"prompt": p} for p in trl_prompts]),
@@ -1031,7 +1047,7 @@ grpo:
             out = trainer.train()
         assert out.global_step == steps, f"TRL ran {out.global_step} steps, expected {steps}"
         assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
-        ctx.trl_completion_tokens = statistics.mean(timer.lengths[2:])
+        ctx.trl_completion_tokens = statistics.mean(timer.values[2:])
         return timer.times[2:]
 
     ctx.runners["trl"] = trl_run
@@ -1135,18 +1151,12 @@ distill:
             rc = posttrain_main(["distill", "--recipe", str(recipe), f"run.output_dir={root / 'runs'}",
                                  f"run.threads={args.threads}", "run.quiet=true", f"max_steps={steps}"])
         assert rc == 0, "posttrain distill failed"
-        rows = [json.loads(l) for l in
-                (root / "runs" / "bench-distill" / "distill" / "metrics.jsonl").read_text().splitlines()]
-        rows = [r for r in rows if "time/step" in r][2:]
-        phases = {k: statistics.median(r[f"time/{k}"] for r in rows) for k in ("sample", "train")}
-        phases["completion_tokens"] = statistics.mean(r["completion/length"] for r in rows)
-        return [r["time/step"] for r in rows], phases
+        return _cli_step_times(root / "runs" / "bench-distill" / "distill" / "metrics.jsonl", ("sample", "train"))
 
     ctx = SimpleNamespace(steps=steps, student=student, teacher=teacher, runners={"posttrain": ours}, trl_error=None,
                           cleanup=lambda: shutil.rmtree(root, ignore_errors=True))
     try:
         from datasets import Dataset
-        from transformers import TrainerCallback
         from trl import DistillationConfig, DistillationTrainer
     except ImportError as e:
         ctx.trl_error = e
@@ -1155,17 +1165,6 @@ distill:
     trl_tok = copy.deepcopy(tok)
     trl_tok.padding_side = "left"  # TRL's generation needs left padding
 
-    class StepTimer(TrainerCallback):
-        def __init__(self):
-            self.times, self.t0 = [], 0.0
-
-        def on_step_begin(self, *a, **k):
-            self.t0 = time.perf_counter()
-
-        def on_step_end(self, *a, **k):
-            _sync(args.device)
-            self.times.append(time.perf_counter() - self.t0)
-
     def trl_run() -> list[float]:
         targs = DistillationConfig(output_dir=str(root / "trl"), per_device_train_batch_size=16,
                                    max_completion_length=args.max_new_tokens, temperature=1.0, beta=1.0,
@@ -1173,7 +1172,7 @@ distill:
                                    max_steps=steps, bf16=False, fp16=False, **_no_checkpointing(),
                                    use_cpu=args.device == "cpu", logging_strategy="no", save_strategy="no",
                                    report_to=[], disable_tqdm=True, dataloader_num_workers=0, seed=0)
-        timer = StepTimer()
+        timer = _step_timer(args.device)
         with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
             trainer = DistillationTrainer(model=copy.deepcopy(student), teacher_model=copy.deepcopy(teacher),
                                           args=targs, train_dataset=Dataset.from_list([{"prompt": p} for p in prompts]),
