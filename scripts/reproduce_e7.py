@@ -516,8 +516,10 @@ def report_md(res: dict) -> str:
     S, T, tiny = mode.start, res.get("temperature", 1.0), mode.name == "tiny"
     L = []
     L.append(f"# E7: GRPO vs best-of-K on {mode.recipe}{' (quick smoke run)' if res['quick'] else ''}\n")
-    L.append(f"Runtime: {res['runtime_s'] / 60:.1f} min in all on this machine ({os.cpu_count()} cores, shared; "
-             f"torch threads per stage: {res['threads'] or 'default'}): "
+    load = res.get("load_average")  # (start, end): 1-minute load averages; a shared machine slows every figure
+    busy = f"load average {load[0]:.1f} at the start, {load[1]:.1f} at the end" if load else "load not recorded"
+    L.append(f"Runtime: {res['runtime_s'] / 60:.1f} min in all on this machine ({res.get('cpu', 'CPU not recorded')}, "
+             f"{os.cpu_count()} cores, {busy}; torch threads per stage: {res['threads'] or 'default'}): "
              + (f"SFT {sec['sft']:.0f} s, " if mode.runs_sft else "") + f"GRPO {sec['grpo']:.0f} s, "
              f"baseline and final evaluations {sec['eval']:.0f} s" + (" (reused runs: " + ", ".join(res["reused"]) + ")"
                                                                    if res["reused"] else "") + ".\n")
@@ -680,6 +682,19 @@ def _where_the_gain_comes_from(L: list[str], res: dict, sft: dict, grpo: dict) -
 
 
 # ----------------------------------------------------------------------------- main
+def _cpu_model() -> str:
+    """The CPU's model name and family / model numbers from /proc/cpuinfo (what RESULTS.md records with a figure)."""
+    info: dict[str, str] = {}
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                info.setdefault(key.strip(), value.strip())
+    except OSError:
+        return "CPU not recorded"
+    return f"{info.get('model name', 'unknown CPU')} (family {info.get('cpu family', '?')} model {info.get('model', '?')})"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", choices=sorted(MODES), default="tiny",
@@ -723,7 +738,7 @@ def main(argv: list[str] | None = None) -> int:
     from verifiers.runner import VerifierPool
 
     task_module = importlib.import_module(mode.task)
-    t_all = time.time()
+    t_all, load_start = time.time(), os.getloadavg()[0]
     overrides = (list(mode.quick) if args.quick else []) + args.overrides
     runs = out / "runs"
     run_root = runs / mode.recipe
@@ -820,6 +835,7 @@ def main(argv: list[str] | None = None) -> int:
 
     res["stage_plots"] = plot_runs({"sft": run_root / "sft", "grpo": grpo_dir}, out, say=lambda m: print(f"[e7] {m}"))
     res["runtime_s"] = time.time() - t_all + sum(seconds[k] for k in ("sft", "grpo") if k in reused)
+    res["load_average"], res["cpu"] = (load_start, os.getloadavg()[0]), _cpu_model()
     (out / "e7.json").write_text(json.dumps(res, indent=2, default=str))
     (out / "report.md").write_text(report_md(res))
     print(f"[e7] {mode.start} greedy {sft_eval['greedy_accuracy']:.3f} -> GRPO greedy {grpo_eval['greedy_accuracy']:.3f}; "

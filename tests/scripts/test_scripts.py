@@ -149,6 +149,10 @@ def test_e7_report_and_plots_of_each_mode(mode, tmp_path):
     assert all((tmp_path / name).is_file() for name in figs) and len(figs) == 5
     text = e7.report_md(res)
     assert f"+{25.0:.1f} points" in text and "## Compute" in text and "## Examples" in text
+    assert "load not recorded" in text and "shared" not in text.split("\n\n")[1]  # no load measured: no claim about it
+    res.update(load_average=(0.1, 2.0), cpu="AMD EPYC (family 25 model 1)")
+    assert "(AMD EPYC (family 25 model 1), " in e7.report_md(res)
+    assert "load average 0.1 at the start, 2.0 at the end" in e7.report_md(res)
     if mode == "real":
         assert "--model real" in text and "**met**" in text and "instruct greedy accuracy" in text
         assert "Where the gain comes from" not in text and "a sample showing a counted behaviour" in text
