@@ -40,16 +40,33 @@ def dtype_problem(name: str) -> str | None:
             "and for bf16 compute over fp32 weights set run.mixed_precision=bf16 (or auto)")
 
 
-def cpu_flags() -> set[str]:
-    """The CPU feature flags of /proc/cpuinfo (empty where there is none)."""
+def cpu_info() -> dict[str, str]:
+    """The first processor's fields of /proc/cpuinfo ("model name", "cpu family", "model", "flags", ...); empty
+    where there is none."""
+    info: dict[str, str] = {}
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
-                if line.startswith("flags"):
-                    return set(line.split(":", 1)[1].split())
+                if not line.strip():
+                    break  # the end of the first processor's block
+                key, _, value = line.partition(":")
+                info.setdefault(key.strip(), value.strip())
     except OSError:
         pass
-    return set()
+    return info
+
+
+def cpu_flags() -> set[str]:
+    """The CPU feature flags of /proc/cpuinfo (empty where there is none)."""
+    return set(cpu_info().get("flags", "").split())
+
+
+def cpu_model() -> str:
+    """The CPU's model name with its family and model numbers (what RESULTS.md records with a figure)."""
+    info = cpu_info()
+    if not info:
+        return "CPU not recorded"
+    return f"{info.get('model name', 'unknown CPU')} (family {info.get('cpu family', '?')} model {info.get('model', '?')})"
 
 
 def native_bf16() -> bool:

@@ -1314,6 +1314,7 @@ def bench_real(args) -> dict:
     from posttrain.runtime import native_bf16
 
     args.bf16_rows = args.real_bf16 == "yes" or (args.real_bf16 == "auto" and native_bf16())
+    args.real_autocast = (False, True) if args.bf16_rows else (False,)  # the precisions of every row below: bf16?
     if not args.bf16_rows:
         print("bf16 rows skipped (--real-bf16 yes runs them): " + ("--real-bf16 no" if args.real_bf16 == "no" else
               "bf16 is not native and faster on this machine (runtime.native_bf16: run.mixed_precision=auto and "
@@ -1370,7 +1371,7 @@ def bench_real(args) -> dict:
     train_model = copy.deepcopy(model).train()
     opt = torch.optim.AdamW(train_model.parameters(), lr=1e-6)
     losses = {}
-    precisions = (False, True) if args.bf16_rows else (False,)  # bf16 autocast or not
+    precisions = args.real_autocast
     with torch.no_grad():  # the same weights, both precisions: how far bf16 autocast moves the loss
         for a in precisions:
             with torch.autocast(args.device, dtype=torch.bfloat16, enabled=a):
@@ -1434,7 +1435,7 @@ def _real_logprob_step(args, model) -> dict:
         finally:
             support.ENABLED = was
 
-    variants = [(lean, bf16) for bf16 in ((False, True) if args.bf16_rows else (False,)) for lean in (False, True)]
+    variants = [(lean, bf16) for bf16 in args.real_autocast for lean in (False, True)]
     for v in variants:
         step(*v)  # warm-up
     times: dict = {v: [] for v in variants}
@@ -1466,7 +1467,7 @@ def _real_trainers(args) -> dict:
         out.setdefault(stage, {})[precision] = dict(trl_s_per_step=mt, ours_s_per_step=mo, ratio=mt / mo,
                                                     **(extra or {}))
 
-    precisions = (False, True) if args.bf16_rows else (False,)
+    precisions = args.real_autocast
     for stage, setup in (("sft", _sft_setup), ("dpo", _dpo_setup)):
         for bf16 in precisions:
             ctx = setup(args, real=True, bf16=bf16)

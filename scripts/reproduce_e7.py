@@ -682,19 +682,6 @@ def _where_the_gain_comes_from(L: list[str], res: dict, sft: dict, grpo: dict) -
 
 
 # ----------------------------------------------------------------------------- main
-def _cpu_model() -> str:
-    """The CPU's model name and family / model numbers from /proc/cpuinfo (what RESULTS.md records with a figure)."""
-    info: dict[str, str] = {}
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                key, _, value = line.partition(":")
-                info.setdefault(key.strip(), value.strip())
-    except OSError:
-        return "CPU not recorded"
-    return f"{info.get('model name', 'unknown CPU')} (family {info.get('cpu family', '?')} model {info.get('model', '?')})"
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", choices=sorted(MODES), default="tiny",
@@ -735,6 +722,7 @@ def main(argv: list[str] | None = None) -> int:
     from posttrain.models import count_parameters, load_model
     from posttrain.models import is_model_dir
     from posttrain.tasks import load_split
+    from posttrain.runtime import cpu_model
     from verifiers.runner import VerifierPool
 
     task_module = importlib.import_module(mode.task)
@@ -835,7 +823,7 @@ def main(argv: list[str] | None = None) -> int:
 
     res["stage_plots"] = plot_runs({"sft": run_root / "sft", "grpo": grpo_dir}, out, say=lambda m: print(f"[e7] {m}"))
     res["runtime_s"] = time.time() - t_all + sum(seconds[k] for k in ("sft", "grpo") if k in reused)
-    res["load_average"], res["cpu"] = (load_start, os.getloadavg()[0]), _cpu_model()
+    res["load_average"], res["cpu"] = (load_start, os.getloadavg()[0]), cpu_model()
     (out / "e7.json").write_text(json.dumps(res, indent=2, default=str))
     (out / "report.md").write_text(report_md(res))
     print(f"[e7] {mode.start} greedy {sft_eval['greedy_accuracy']:.3f} -> GRPO greedy {grpo_eval['greedy_accuracy']:.3f}; "
