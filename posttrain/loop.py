@@ -4,7 +4,8 @@ Every trainer composes these; none of them owns the loop. The same code runs on 
 process and under `accelerate launch` (DDP/FSDP/DeepSpeed): the Accelerator decides.
 
 - `setup(seed, threads)`: seeds python/numpy/torch, tunes glibc malloc, creates the `Accelerator`.
-- `start_run(res, seed, resume)`: `setup`, then the run directory and its config.yaml (main process), and
+- `start_run(res, seed, resume)`: with several processes and an `auto` precision setting, process 0's bf16
+  probe for all (`share_bf16_probe`); `setup`, then the run directory and its config.yaml (main process), and
   with an `auto` precision setting precision.json, the bf16 decision that a resume keeps (`recorded_bf16`);
   returns the accelerator and `say` (prints on the main process only).
 - `resume_run(...)`: with resume=true, the newest checkpoint restored in place and the metrics rows
@@ -40,8 +41,8 @@ import torch
 
 from posttrain.data import token_groups  # noqa: F401  (micro-batches by tokens; importable from here)
 from posttrain.errors import ConfigError, TrainingError  # noqa: F401  (TrainingError: importable from here as before)
-from posttrain.runtime import (BF16_MIN_SPEEDUP, bf16_forced, bf16_measured, has_accelerator_device, native_bf16,
-                               set_threads, tune_malloc)
+from posttrain.runtime import (BF16_MIN_SPEEDUP, adopt_bf16_speedup, bf16_forced, bf16_measured, bf16_speedup,
+                               cpu_lists_bf16, has_accelerator_device, native_bf16, set_threads, tune_malloc)
 from posttrain.runtime import mixed_precision as resolve_mixed_precision
 from posttrain.trackers import Trackers, flat_config
 
@@ -76,6 +77,28 @@ def setup(seed: int, threads: int = 0, mixed_precision: str | None = None):
     return accelerator
 
 
+def share_bf16_probe() -> None:
+    """Several CPU processes (`accelerate launch`, torchrun: WORLD_SIZE > 1): process 0 runs the bf16 probe and
+    every process adopts its ratio (`runtime.adopt_bf16_speedup`), so the `auto` settings choose one precision on
+    all ranks. Each rank's own probe, timed while the others load, can fall on either side of BF16_MIN_SPEEDUP,
+    and the ranks would then train one DDP model in two precisions and sample in two dtypes. Starts the process
+    group (accelerate's PartialState, which the Accelerator then reuses). A no-op in one process, with a GPU,
+    under POSTTRAIN_BF16 or a resumed run's pinned decision, and on CPUs whose flags list no bf16 units (no
+    probe runs there)."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or has_accelerator_device() or bf16_forced() is not None \
+            or not cpu_lists_bf16():
+        return
+    from accelerate import PartialState
+    from accelerate.utils import broadcast_object_list
+
+    state = PartialState(cpu=True)
+    if state.num_processes <= 1:
+        return
+    ratio = [bf16_speedup() if state.is_main_process else None]
+    broadcast_object_list(ratio, from_process=0)
+    adopt_bf16_speedup(ratio[0])
+
+
 def main_printer(accelerator) -> Callable[..., None]:
     """`print` on the main process, a no-op on the others (what a trainer's `say` is)."""
     return print if accelerator.is_main_process else _silent
@@ -93,6 +116,8 @@ def start_run(res, seed: int, resume: bool, check: Callable[[Any], None] | None 
     from posttrain.config import save_resolved
 
     set_threads(res.run.threads)  # first: `auto` measures bf16 against fp32 at the run's thread count
+    if "auto" in (res.run.mixed_precision, res.rollout.dtype):
+        share_bf16_probe()
     accelerator = setup(seed, res.run.threads, resolve_mixed_precision(res.run.mixed_precision))
     if check is not None:
         check(accelerator)

@@ -81,7 +81,12 @@ def native_bf16() -> bool:
         return forced[0]
     if torch.cuda.is_available():
         return bool(torch.cuda.is_bf16_supported())
-    return bool({"avx512_bf16", "amx_bf16"} & cpu_flags()) and bf16_speedup() >= BF16_MIN_SPEEDUP
+    return cpu_lists_bf16() and bf16_speedup() >= BF16_MIN_SPEEDUP
+
+
+def cpu_lists_bf16() -> bool:
+    """The CPU's flags list bf16 matmul units (AVX512-BF16 or AMX-BF16): where `native_bf16` runs the probe."""
+    return bool({"avx512_bf16", "amx_bf16"} & cpu_flags())
 
 
 BF16_ENV = "POSTTRAIN_BF16"
@@ -125,6 +130,13 @@ def bf16_speedup() -> float:
     if threads not in _bf16_speedups:
         _bf16_speedups[threads] = min(_matmul_time_ratio(rows, reps=reps) for rows, reps in ((16, 15), (256, 5)))
     return _bf16_speedups[threads]
+
+
+def adopt_bf16_speedup(ratio: float) -> None:
+    """Take `ratio` as this process's `bf16_speedup()` at the current thread count, without measuring. The
+    processes of a multi-process run adopt process 0's measurement (`loop.share_bf16_probe`), so the `auto`
+    settings decide alike on every rank."""
+    _bf16_speedups[torch.get_num_threads()] = float(ratio)
 
 
 def bf16_measured() -> float | None:

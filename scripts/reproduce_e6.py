@@ -68,6 +68,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from posttrain.config import load_recipe  # noqa: E402
+from posttrain.runtime import cpu_model  # noqa: E402
 from stage_runner import run_stage  # noqa: E402  (scripts/, this file's folder)
 
 
@@ -437,7 +438,8 @@ def report_md(results: dict, an: dict, plots: list[str]) -> str:
          f"{results['seeds']} for each arm. Threads per run: {results['threads'] or 'torch default'}. Wall time of "
          f"the pipeline (every run, one after the other): {results['pipeline_seconds'] / 60:.1f} min; this "
          f"invocation {results['total_seconds'] / 60:.1f} min (finished runs are reused). Machine: "
-         f"{os.cpu_count()} cores, shared with other jobs; load average at the end {results['load_end']}.", "",
+         f"{cpu_model()}, {os.cpu_count()} cores; load average at the end {results['load_end']} (other jobs "
+         f"running beside the pipeline slow its runs and inflate the times).", "",
          f"SFT model (held-out, greedy): gold quality {fmt(results['sft'].get('mean_quality'))}, in band "
          f"{fmt(results['sft'].get('frac_in_band'), d=2)}. Reward model held-out pair accuracy "
          f"{fmt(results['rm'].get('eval/accuracy'))}.", "",

@@ -405,3 +405,62 @@ def test_generate_reports_progress_per_micro_batch(tiny_lm):
     generate(model, tok, ["a b", "c d e", "f"], n=2, max_new_tokens=4, ignore_eos=True,
              progress=lambda done, total: one.append((done, total)))
     assert one == [(0, 6), (0, 6), (0, 6), (5, 6), (6, 6)]  # 4 steps; every row ends at its limit on the last
+
+
+def test_several_processes_adopt_process_zeros_bf16_probe(monkeypatch):
+    """Under `accelerate launch` (WORLD_SIZE > 1) only process 0 probes; every process adopts its ratio, so `auto`
+    picks one precision on all ranks even where a rank's own probe would land on the other side of the bar."""
+    import accelerate
+    import accelerate.utils
+
+    from posttrain import runtime
+
+    sent = []
+
+    class FakeState:
+        def __init__(self, cpu=False):
+            assert cpu
+            self.num_processes, self.is_main_process = 2, rank == 0
+
+    def broadcast(values, from_process=0):
+        assert from_process == 0
+        if rank == 0:
+            sent.append(values[0])
+        else:
+            values[0] = sent[0]
+        return values
+
+    monkeypatch.setattr(accelerate, "PartialState", FakeState)
+    monkeypatch.setattr(accelerate.utils, "broadcast_object_list", broadcast)
+    monkeypatch.setattr(runtime.torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(loop, "has_accelerator_device", lambda: False)
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f", "avx512_bf16"})
+    monkeypatch.setattr(runtime, "_bf16_pinned", None)
+    monkeypatch.delenv("POSTTRAIN_BF16", raising=False)
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    own = {0: 1.5, 1: 1.1}  # each rank's own measurement: bf16 on rank 0, fp32 on rank 1 had they decided alone
+    for rank in (0, 1):
+        monkeypatch.setattr(runtime, "_bf16_speedups", {})
+        monkeypatch.setattr(runtime, "_matmul_time_ratio", lambda rows, **kw: own[rank] if rank == 0 else
+                            pytest.fail("a process other than 0 ran the probe"))
+        loop.share_bf16_probe()
+        assert runtime.bf16_measured() == 1.5 and runtime.native_bf16() and runtime.mixed_precision("auto") == "bf16"
+    assert sent == [1.5]
+
+    def untouched():  # the no-op cases: no process group, no probe, no broadcast
+        monkeypatch.setattr(runtime, "_bf16_speedups", {})
+        loop.share_bf16_probe()
+        assert runtime.bf16_measured() is None and sent == [1.5]
+
+    monkeypatch.setattr(accelerate, "PartialState", lambda cpu=False: pytest.fail("a process group was started"))
+    monkeypatch.setenv("WORLD_SIZE", "1")
+    untouched()
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("POSTTRAIN_BF16", "0")
+    untouched()
+    monkeypatch.delenv("POSTTRAIN_BF16")
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2"})  # no bf16 units listed: nothing to agree on
+    untouched()
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f", "avx512_bf16"})
+    monkeypatch.setattr(loop, "has_accelerator_device", lambda: True)  # a GPU decides by its capability
+    untouched()
