@@ -33,9 +33,9 @@ CPU:  python scripts/reproduce_e6.py --quick      tiny preset (~1.2M parameters)
                                                    with --threads 2 on 2 idle CPU cores (RESULTS.md, E6)
       python scripts/reproduce_e6.py --quick --arms dpo-offline ppo-rm    the headline arms only (about the
                                                    two-arm time)
-      python scripts/reproduce_e6.py              small preset (~11M parameters, the seed's 10M+): not timed with seven
-                                                   arms; the per-stage timings under ESTIMATE give at most ~3.3 h
-                                                   with --threads 1 on 2 CPU cores (the two-arm run took 58 min)
+      python scripts/reproduce_e6.py --threads 2  small preset (~11M parameters, the seed's 10M+), all seven arms x 3
+                                                   seeds: 96.2 min on 2 idle cores (AMD EPYC Zen 4; --estimate said
+                                                   80 min at 2 threads, 127 at 1; RESULTS.md, E6)
       python scripts/reproduce_e6.py --estimate   times a few steps of every stage on `small`, prints the estimate
                                                    for the chosen --arms and --seeds
       Measured runtimes and results, with their machine and commit: RESULTS.md (E6).
