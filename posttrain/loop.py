@@ -42,7 +42,7 @@ import torch
 from posttrain.data import token_groups  # noqa: F401  (micro-batches by tokens; importable from here)
 from posttrain.errors import ConfigError, TrainingError  # noqa: F401  (TrainingError: importable from here as before)
 from posttrain.runtime import (BF16_MIN_SPEEDUP, adopt_bf16_speedup, bf16_forced, bf16_measured, bf16_speedup,
-                               cpu_lists_bf16, has_accelerator_device, native_bf16, set_threads, tune_malloc)
+                               has_accelerator_device, native_bf16, probe_decides_bf16, set_threads, tune_malloc)
 from posttrain.runtime import mixed_precision as resolve_mixed_precision
 from posttrain.trackers import Trackers, flat_config
 
@@ -82,19 +82,15 @@ def share_bf16_probe() -> None:
     every process adopts its ratio (`runtime.adopt_bf16_speedup`), so the `auto` settings choose one precision on
     all ranks. Each rank's own probe, timed while the others load, can fall on either side of BF16_MIN_SPEEDUP,
     and the ranks would then train one DDP model in two precisions and sample in two dtypes. Starts the process
-    group (accelerate's PartialState, which the Accelerator then reuses). A no-op in one process, with a GPU,
-    under POSTTRAIN_BF16 or a resumed run's pinned decision, and on CPUs whose flags list no bf16 units (no
-    probe runs there)."""
-    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or has_accelerator_device() or bf16_forced() is not None \
-            or not cpu_lists_bf16():
+    group (accelerate's PartialState, which the Accelerator then reuses). A no-op in one process and wherever
+    no probe decides (`runtime.probe_decides_bf16`: POSTTRAIN_BF16 or a resumed run's pin, a GPU, a CPU
+    without bf16 units)."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or not probe_decides_bf16():
         return
     from accelerate import PartialState
     from accelerate.utils import broadcast_object_list
 
-    state = PartialState(cpu=True)
-    if state.num_processes <= 1:
-        return
-    ratio = [bf16_speedup() if state.is_main_process else None]
+    ratio = [bf16_speedup() if PartialState(cpu=True).is_main_process else None]
     broadcast_object_list(ratio, from_process=0)
     adopt_bf16_speedup(ratio[0])
 

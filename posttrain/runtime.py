@@ -85,8 +85,14 @@ def native_bf16() -> bool:
 
 
 def cpu_lists_bf16() -> bool:
-    """The CPU's flags list bf16 matmul units (AVX512-BF16 or AMX-BF16): where `native_bf16` runs the probe."""
+    """The CPU's flags list bf16 matmul units (AVX512-BF16 or AMX-BF16)."""
     return bool({"avx512_bf16", "amx_bf16"} & cpu_flags())
+
+
+def probe_decides_bf16() -> bool:
+    """`native_bf16` answers by `bf16_speedup()`: nothing forces the decision, there is no CUDA GPU, and the CPU
+    lists bf16 units."""
+    return bf16_forced() is None and not torch.cuda.is_available() and cpu_lists_bf16()
 
 
 BF16_ENV = "POSTTRAIN_BF16"

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from posttrain.runtime import cpu_lists_bf16
+from posttrain.runtime import probe_decides_bf16
 
 ARGS = ["--recipe", "tiny-summarize", "run.threads=1", "max_steps=6", "batch_size=8", "log_every=1", "eval_every=0",
         "num_samples=0", "final_eval_rows=0", "save_every=0", "task.n_train=200", "task.n_eval=20", "lr=3e-3",
@@ -67,7 +67,7 @@ def test_dpo_recipe_chain_runs_under_two_processes(tmp_path):
     """The README's command: `accelerate launch --config_file recipes/launch/cpu-2proc.yaml -m posttrain dpo
     --recipe tiny-summarize ...` builds base (process 0; the other waits), SFT, pairs (sampled by shards),
     the reward model and DPO with two processes, and writes each stage's output once. With
-    run.mixed_precision=auto, on a CPU that lists bf16 units, process 0's bf16 probe decides for both
+    run.mixed_precision=auto, where a probe decides (a CPU that lists bf16 units), process 0's bf16 probe decides for both
     (loop.share_bf16_probe: a broadcast over the real process group)."""
     out = tmp_path / "runs"
     config = Path(__file__).resolve().parents[2] / "recipes" / "launch" / "cpu-2proc.yaml"
@@ -79,7 +79,7 @@ def test_dpo_recipe_chain_runs_under_two_processes(tmp_path):
                  "max_steps=4", "online=false", "eval_every=0", "final_eval_rows=8", "batch_size=8"], tmp_path)
     assert "2 process(es)" in text
     assert "gold win-rate of the DPO model against the SFT model" in text
-    if cpu_lists_bf16() and "POSTTRAIN_BF16" not in os.environ:
+    if probe_decides_bf16():
         assert "run.mixed_precision=auto: bf16 matmuls measured" in text, text[-2000:]
     for stage in ("sft", "rm", "dpo"):
         assert (out / "tiny-summarize" / stage / "final" / "config.json").is_file()

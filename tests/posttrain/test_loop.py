@@ -420,7 +420,7 @@ def test_several_processes_adopt_process_zeros_bf16_probe(monkeypatch):
     class FakeState:
         def __init__(self, cpu=False):
             assert cpu
-            self.num_processes, self.is_main_process = 2, rank == 0
+            self.is_main_process = rank == 0
 
     def broadcast(values, from_process=0):
         assert from_process == 0
@@ -433,7 +433,6 @@ def test_several_processes_adopt_process_zeros_bf16_probe(monkeypatch):
     monkeypatch.setattr(accelerate, "PartialState", FakeState)
     monkeypatch.setattr(accelerate.utils, "broadcast_object_list", broadcast)
     monkeypatch.setattr(runtime.torch.cuda, "is_available", lambda: False)
-    monkeypatch.setattr(loop, "has_accelerator_device", lambda: False)
     monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f", "avx512_bf16"})
     monkeypatch.setattr(runtime, "_bf16_pinned", None)
     monkeypatch.delenv("POSTTRAIN_BF16", raising=False)
@@ -462,5 +461,5 @@ def test_several_processes_adopt_process_zeros_bf16_probe(monkeypatch):
     monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2"})  # no bf16 units listed: nothing to agree on
     untouched()
     monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f", "avx512_bf16"})
-    monkeypatch.setattr(loop, "has_accelerator_device", lambda: True)  # a GPU decides by its capability
+    monkeypatch.setattr(runtime.torch.cuda, "is_available", lambda: True)  # a GPU decides by its capability
     untouched()
