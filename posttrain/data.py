@@ -667,6 +667,13 @@ def collate_completions(items: list[tuple], pad_id: int) -> dict[str, torch.Tens
     return {"input_ids": input_ids, "attention_mask": attention_mask, "completion_mask": completion_mask}
 
 
+def to_device(batch: dict[str, Any], device) -> dict[str, Any]:
+    """A collated batch with its tensors on `device` (the model's): the one place per step where a batch built on
+    the host moves, so everything computed from it (masks, weights, log-probs) lives beside the model. Non-tensor
+    values pass through; tensors already there are not copied."""
+    return {k: v.to(device, non_blocking=True) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+
+
 def token_groups(spans: Sequence[tuple[int, int]], max_rows: int = 0, max_tokens: int = 0,
                  rows_per_item: int = 1) -> list[list[int]]:
     """Consecutive groups of item indices for micro-batches: each group's padded size, rows x (its widest

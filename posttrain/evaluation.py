@@ -255,17 +255,18 @@ def compare_with_sft(stage: str, task_name: str, policy, reference, tokenizer, r
 # ----------------------------------------------------------------------------- the eval stage
 def train(res, ensure) -> Path:
     """`posttrain eval`: the task's held-out metrics of a model and its gold win-rate against a reference model."""
-    from posttrain import loop, tasks
+    from posttrain import loop, runtime, tasks
     from posttrain.models import load_model, load_tokenizer
 
     cfg: EvalConfig = res.stage_cfg
     rows = tasks.load_split(res.task, "eval")[: cfg.rows]
     model_dir = Path(cfg.model) if cfg.model else ensure("sft")
     ref_dir = Path(cfg.reference) if cfg.reference else ensure("base")
+    device = runtime.default_device()
     tok = load_tokenizer(model_dir, res.model)
-    model = load_model(model_dir, res.model.dtype)
+    model = load_model(model_dir, res.model.dtype, device=device)
     ref_tok = load_tokenizer(ref_dir, res.model)
-    ref = load_model(ref_dir, res.model.dtype)
+    ref = load_model(ref_dir, res.model.dtype, device=device)
     print(f"[eval] model {model_dir} vs reference {ref_dir} on {len(rows)} held-out prompts of {res.task.name}")
     m = evaluate_model(res.task.name, model, tok, rows, max_new_tokens=cfg.max_new_tokens)
     r = evaluate_model(res.task.name, ref, ref_tok, rows, max_new_tokens=cfg.max_new_tokens)

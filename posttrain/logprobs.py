@@ -33,7 +33,7 @@ from typing import Any, Mapping
 
 import torch
 
-from posttrain.data import row_spans, token_groups
+from posttrain.data import row_spans, to_device, token_groups
 from posttrain.lean import train as lean
 from posttrain.lean.support import lean_support
 from posttrain.models import accepts, model_device, position_ids_from_mask, unwrap_model  # noqa: F401
@@ -281,9 +281,11 @@ def token_weights(batch: dict[str, torch.Tensor], prompt_loss_weight: float) -> 
     return weights
 
 
-def nll_sum(model, batch: dict[str, torch.Tensor], prompt_loss_weight: float = 0.0) -> tuple[torch.Tensor, float]:
+def nll_sum(model, batch: dict[str, torch.Tensor], prompt_loss_weight: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """SFT's loss: the `token_weights`-weighted summed negative log-likelihood of a batch (input_ids, attention_mask,
-    completion_mask), and the total weight (= completion tokens when the prompt weight is 0); differentiable."""
+    completion_mask), and the total weight (= completion tokens when the prompt weight is 0), both 0-dim tensors on
+    the model's device (no host sync here); the loss is differentiable. A batch still on the host is moved first."""
+    batch = to_device(batch, model_device(model))
     weights = token_weights(batch, prompt_loss_weight)  # (B, T)
     logps, _ = sequence_logprobs(model, batch["input_ids"], batch["attention_mask"], weights > 0)
-    return -(logps * weights).sum(), float(weights.sum())
+    return -(logps * weights).sum(), weights.sum()

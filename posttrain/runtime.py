@@ -29,6 +29,20 @@ def has_accelerator_device() -> bool:
     return bool(mps is not None and mps.is_available())
 
 
+def default_device() -> torch.device:
+    """Where a command without an Accelerator (`posttrain eval`, the reproductions' evaluations) puts its models:
+    the first CUDA / XPU / MPS device when there is one, else the CPU (what accelerate would pick)."""
+    if torch.cuda.is_available():
+        return torch.device("cuda", torch.cuda.current_device())
+    xpu = getattr(torch, "xpu", None)
+    if xpu is not None and xpu.is_available():
+        return torch.device("xpu", 0)
+    mps = getattr(torch.backends, "mps", None)
+    if mps is not None and mps.is_available():
+        return torch.device("mps")
+    return torch.device("cpu")
+
+
 def dtype_problem(name: str) -> str | None:
     """Why weights in dtype `name` (a `model.dtype` value) cannot be used on this machine, or None."""
     if name == "float32":

@@ -157,13 +157,14 @@ def evaluate_model(model_dir: Path, rows: list[dict], max_new_tokens: int, pool,
 
     from posttrain import chat
     from posttrain.models import load_model, load_tokenizer
+    from posttrain.runtime import default_device
     from posttrain.rollout import SamplingParams, generate
     from verifiers.registry import get_verifier
 
     task = importlib.import_module(mode.task)
 
     verifier = get_verifier("math")
-    tok, model = load_tokenizer(model_dir), load_model(model_dir)
+    tok, model = load_tokenizer(model_dir), load_model(model_dir, device=default_device())
     chat.configure(tok, "auto", say=lambda _: None)  # prompts through the model's chat template, as the stages do
     prompts, refs = [r["prompt"] for r in rows], [r["answer"] for r in rows]
     keys = list(range(len(rows)))

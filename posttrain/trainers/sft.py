@@ -40,7 +40,7 @@ import torch
 from posttrain import loop
 from posttrain.chat import prompt_text
 from posttrain.config import Resolved
-from posttrain.data import collate_completions, tokenize_completions
+from posttrain.data import collate_completions, to_device, tokenize_completions
 from posttrain.logprobs import nll_sum, token_weights
 
 
@@ -103,7 +103,7 @@ def eval_loss(model, pairs, pad_id: int, micro_batch_size: int, max_tokens: int 
     for chunk in micro_groups(pairs, micro_batch_size, max_tokens):
         s, n = nll_sum(model, collate_completions(chunk, pad_id))
         total += float(s)
-        count += n
+        count += float(n)
     return total / max(1, count)
 
 
@@ -152,7 +152,10 @@ def train(res: Resolved, ensure) -> Path:
                                  accelerator.process_index, accelerator.num_processes)[:per_process]
         batch_pairs = [train_pairs[i] for i in idx]
         micro_batches = [collate_completions(c, tokenizer.pad_token_id) for c in micro_groups(batch_pairs, micro, budget)]
+        # counted on the host, before the batch moves to the model's device (no device-to-host sync)
         n_tokens = sum(float(token_weights(mb, cfg.prompt_loss_weight).sum()) for mb in micro_batches)
+        tokens_seen += int(sum(int(mb["attention_mask"].sum()) for mb in micro_batches))
+        micro_batches = [to_device(mb, accelerator.device) for mb in micro_batches]
         # Token mean over the GLOBAL batch: DDP averages gradients over processes, so each process
         # divides its token-loss sum by the global token count times the number of processes.
         scale = accelerator.num_processes / loop.global_sum(accelerator, n_tokens)
@@ -163,7 +166,6 @@ def train(res: Resolved, ensure) -> Path:
 
         m = loop.optimizer_step(accelerator, model, optimizer, scheduler, micro_batches, loss_fn,
                                 cfg.max_grad_norm, step)
-        tokens_seen += int(sum(int(mb["attention_mask"].sum()) for mb in micro_batches))
         done = step + 1
         if done % cfg.log_every == 0 or done == cfg.max_steps:
             dt = time.time() - t_last
