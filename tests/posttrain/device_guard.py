@@ -24,6 +24,7 @@ bookkeeping makes a step a few times slower.
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import traceback
 
@@ -87,6 +88,7 @@ class VirtualDevice(TorchFunctionMode):
         super().__init__()
         self.on_device = _ON_DEVICE  # shared by every guard: a tensor put on the device stays there (caches)
         self.syncs = 0
+        self.sync_sites: collections.Counter = collections.Counter()  # where the host reads happened
         self.strict = strict
         self.mismatches: list[str] = []
         self._stack = contextlib.ExitStack()
@@ -160,7 +162,7 @@ class VirtualDevice(TorchFunctionMode):
         dev = [t for t in tensors if self.placed(t)]
         if name in _SYNCS:
             if dev:
-                self.syncs += 1
+                self._sync()
             return func(*args, **kwargs)
         host = [t for t in tensors if not self.placed(t) and t.dim() > 0]
         if dev and host and not self._allowed(func, name, args):
@@ -194,7 +196,8 @@ class VirtualDevice(TorchFunctionMode):
         if name == "cuda":
             return t if self.placed(t) else self.tag(t.clone())
         if name == "cpu":
-            self.syncs += int(self.placed(t))
+            if self.placed(t):
+                self._sync()
             out = args[0] if not self.placed(t) else args[0].clone()
             return self.untag(out) if out is not t else out
         target = None
@@ -217,8 +220,12 @@ class VirtualDevice(TorchFunctionMode):
         if out is t:  # a real move makes a new tensor; the source stays where it was
             out = t.clone()
         if not on:
-            self.syncs += 1
+            self._sync()
         return self.tag(out) if on else self.untag(out)
+
+    def _sync(self) -> None:
+        self.syncs += 1
+        self.sync_sites[_caller()] += 1
 
 
 def _caller() -> str:
