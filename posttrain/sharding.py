@@ -127,8 +127,8 @@ def global_explained_variance(accelerator, values: torch.Tensor, returns: torch.
     cm = completion_mask.bool()
     r = returns.detach()[cm].double()
     d = (returns.detach() - values.detach())[cm].double()
-    t = torch.stack([torch.tensor(float(r.numel()), dtype=torch.float64), r.sum(), (r * r).sum(), d.sum(),
-                     (d * d).sum()]).to(accelerator.device)
+    count = torch.tensor(float(r.numel()), dtype=torch.float64, device=r.device)
+    t = torch.stack([count, r.sum(), (r * r).sum(), d.sum(), (d * d).sum()]).to(accelerator.device)
     n, sr, srr, sd, sdd = accelerator.reduce(t, reduction="sum").tolist()
     var_r, var_d = srr - sr * sr / max(n, 1.0), sdd - sd * sd / max(n, 1.0)  # both times (n - 1)
     return 1.0 - var_d / var_r if var_r > 0 else float("nan")

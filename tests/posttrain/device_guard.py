@@ -8,9 +8,9 @@ machine is split into host and device:
   and a Parameter whose `.data` was set to one (`nn.Module.to(DEVICE)`);
 - "host" tensors: everything else: factories without `device=` (`torch.tensor([...])`, `torch.zeros(n)`),
   tokenizer outputs, `.cpu()` / `.to("cpu")` results.
-An op that mixes a device tensor with a host tensor of one or more dimensions raises `DeviceMismatch`, as CUDA
-raises "Expected all tensors to be on the same device". What CUDA allows stays allowed: 0-dim host tensors
-(scalars) beside device tensors, `copy_` across the two, host index tensors into a device tensor (`x[idx]`),
+An op that mixes a device tensor with a host tensor of one or more dimensions (any host tensor in a `cat` /
+`stack`) raises `DeviceMismatch`, as CUDA raises "Expected all tensors to be on the same device". What CUDA
+allows stays allowed: 0-dim host tensors (scalars) beside device tensors in arithmetic, `copy_` across the two, host index tensors into a device tensor (`x[idx]`),
 basic-index assignment (`host[a:b] = device_tensor`, a copy). Reading a device tensor back (`.item()`, `float()`,
 `int()`, `bool()`, `.tolist()`, `.cpu()`, `.numpy()`) counts as a host sync (`syncs`); it is allowed.
 
@@ -47,6 +47,7 @@ _FACTORIES = {torch.zeros, torch.ones, torch.full, torch.empty, torch.tensor, to
               torch.empty_strided, torch.randperm, torch.tril_indices, torch.triu_indices, torch.normal}
 _LIKE = {torch.zeros_like, torch.ones_like, torch.full_like, torch.empty_like, torch.rand_like, torch.randn_like,
          torch.randint_like}
+_JOINS = {"cat", "concat", "concatenate", "stack", "hstack", "vstack", "dstack", "column_stack"}
 _SYNCS = {"item", "__float__", "__int__", "__bool__", "__index__", "tolist", "numpy", "__len__"}
 _DEVICE_DESC = torch._C.TensorBase.__dict__["device"]
 _DATA_DESC = torch._C.TensorBase.__dict__["data"]
@@ -164,7 +165,8 @@ class VirtualDevice(TorchFunctionMode):
             if dev:
                 self._sync()
             return func(*args, **kwargs)
-        host = [t for t in tensors if not self.placed(t) and t.dim() > 0]
+        # CUDA takes a 0-dim host tensor beside device tensors in arithmetic, not in a concatenation
+        host = [t for t in tensors if not self.placed(t) and (t.dim() > 0 or name in _JOINS)]
         if dev and host and not self._allowed(func, name, args):
             self._mismatch(name, dev, host)
         out = func(*args, **kwargs)

@@ -84,6 +84,8 @@ def test_guard_raises_where_cuda_would_and_allows_what_cuda_allows():
             dev * host
         with pytest.raises(guard.DeviceMismatch):
             torch.cat([dev, host])
+        with pytest.raises(guard.DeviceMismatch):  # a 0-dim host tensor is fine in arithmetic, not in a stack
+            torch.stack([dev.sum(), torch.tensor(1.0)])
         lin = torch.nn.Linear(4, 2).to(guard.DEVICE)
         with pytest.raises(guard.DeviceMismatch):
             lin(host)
