@@ -7,6 +7,7 @@ It exposes the calls the engine's loop uses (as `posttrain.rollout.backends.HFFo
     decode(tok, pos, col)                one token per active row (B, 1) -> logits (B, V)
     select(order, col)                   keep / reorder active rows (finished rows dropped)
     release()                            drop the cache
+and the static-shape step the engine uses on CUDA (`start(..., static=True)`, then `step()`; below).
 
 - Weights are read from the HF module and rearranged once (cached per model by the engine, rewritten
   by `load` when a parameter changes: one strided multiply per matrix): q/k/v fused into one
@@ -41,18 +42,48 @@ It exposes the calls the engine's loop uses (as `posttrain.rollout.backends.HFFo
   GPU's. Everything else stays fp32: the residual stream, norms, RoPE, attention and its KV cache, and
   the logits the sampler reads (bf16-rounded: ~3 significant digits). Sampling then follows a slightly
   different distribution from the fp32 policy; the trainers log the gap (`mismatch/kl`).
+- Half precision (bf16 / fp16 model weights, or `compute_dtype=torch.bfloat16`: the engine's choice on CUDA
+  for bf16 autocast and for `rollout.dtype=bfloat16`, see `posttrain.rollout.engine.select_backend`): the
+  fused weights, the residual stream, every matmul and the KV cache are in the half dtype, as in the HF
+  forward of a bf16 model. fp32 where accuracy needs it: RMSNorm statistics (x / hypot(|x|, c) computed in
+  fp32, rounded once), RoPE (fp32 complex multiply: `view_as_complex` has no bf16, and fp32 is more exact than
+  HF's bf16 cos/sin), attention (`F.scaled_dot_product_attention` with the additive key mask, the rep query
+  heads of a kv head as its query "sequence": fp32 scores and softmax inside the fused kernel; explicit half
+  matmuls rounded the scores to bf16, ~4x further from fp32 log-probs than HF's bf16 forward), the logits
+  handed to the sampler (the head's half output widened to fp32), sampling and log-probs. Folded norm
+  weights are rounded once with the matrix they scale (HF rounds the normed activations instead): logits
+  within bf16 rounding of the HF bf16 forward (tested). No packed oneDNN weights for half compute; on CPU
+  bf16 compute works but is slow (bf16 elementwise work).
+- Static decode step (`start(..., static=True)`, `step()`; the engine's path on CUDA): one function,
+  `decode_static(tok, pos, col)`, whose shapes never change within a micro-batch: every row of the
+  micro-batch is computed each step (no compaction), attention runs over the whole preallocated cache width
+  (rounded up to STATIC_COLS, so micro-batches with different prompt lengths share one shape) with an
+  additive key mask that is -inf for columns not yet written (the cache is zero-initialised, so masked
+  columns are finite and never make NaN), and the write column, positions and input token are device tensors
+  (`index_copy_` / `index_fill_` / `index_select`), so the step needs no host value and allocates nothing on
+  the host. On CUDA (`CUDA_GRAPHS`, env POSTTRAIN_CUDA_GRAPHS=0 turns it off) the step is captured once per
+  (rows, cache width) into a `torch.cuda.CUDAGraph` after a warm-up on a side stream, and each step is one
+  replay (a decode step of a small model is otherwise ~30 layers x ~15 kernel launches). The captured
+  buffers (cache, key mask, inputs, logits) are kept with the graph (`GRAPH_CACHE` shapes, least recently
+  used dropped; `drop_graphs()` frees them) and reused by later calls; `load` writes every weight and bias
+  in place, so a graph stays valid across weight refreshes (a changed tensor address or a regrown RoPE
+  table is detected and recaptured). If capture raises for any reason, the same function runs eagerly
+  (warned once). On CPU the function runs eagerly (tests compare it with `decode`).
 Agreement with the HF forward: fp32 logits equal within 1e-4 (tested: prefill and decode, left-padded);
-bf16 weights: logits within bf16 rounding (tested against the fp32 path).
+bf16 weights: logits within bf16 rounding (tested against the fp32 path and against HF's bf16 forward).
 Not thread-safe: one `generate` at a time per model.
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
+from collections import OrderedDict
 
 import torch
 import torch.nn.functional as F
 
+from .support import HALF_DTYPES
 from .support import effective_weight as _weight
 from .support import linear_bias as _linear_bias
 from .support import rope_cis, rope_pair_order
@@ -71,6 +102,14 @@ PACK_BATCH_HINT = 16  # rows the layout is tuned for (any row count works: decod
 # batch 1-32, bf16 1.0-1.25x; SmolLM2 d=576 fp32 1.11-1.16x at batch 16-32; RESULTS.md, "Lean forwards").
 PACK_MIN_HIDDEN = 512
 _PACK_OK: dict = {}
+
+log = logging.getLogger(__name__)
+
+# ----------------------------------------------------------------------------- static decode step (CUDA graphs)
+CUDA_GRAPHS = os.environ.get("POSTTRAIN_CUDA_GRAPHS", "1").strip().lower() not in ("0", "false", "no", "off")
+STATIC_COLS = 64  # the static step's cache width is rounded up to a multiple of this (shared graph shapes)
+GRAPH_CACHE = 4  # captured (rows, width) shapes kept per model, least recently used dropped
+_graph_warned = False
 
 
 def pack(w: torch.Tensor) -> torch.Tensor:
@@ -104,14 +143,18 @@ class LeanLlama:
     PREFILL_MAX_SPAN = 64  # prompts per prefill chunk, at most
     PREFILL_MAX_MASK = 1 << 22  # bound on chunk * Tp * Tp attention-mask entries
 
-    def __init__(self, model, weight_dtype: torch.dtype | None = None):
+    def __init__(self, model, weight_dtype: torch.dtype | None = None, compute_dtype: torch.dtype | None = None):
+        """weight_dtype: of the fused matrices (None: the compute dtype; bf16 with fp32 compute = compressed
+        weights). compute_dtype: of activations and KV cache (None: the model's; a half dtype computes
+        natively in it, and then the weights are in it too)."""
         if hasattr(model, "peft_config"):  # LoRA: base + adapter deltas fused below (`_weight`)
             model = model.get_base_model()
         cfg = model.config
         base = model.model
         self.device = _weight(model.lm_head).device
-        self.dtype = _weight(model.lm_head).dtype
-        self.weight_dtype = wdt = weight_dtype or self.dtype  # dtype of the fused matrices
+        self.dtype = compute_dtype or _weight(model.lm_head).dtype  # activations, residual stream, KV cache
+        self.half = self.dtype in HALF_DTYPES  # native half compute (module docstring)
+        self.weight_dtype = wdt = self.dtype if self.half else (weight_dtype or self.dtype)  # fused matrices
         att0 = base.layers[0].self_attn
         self.D = D = getattr(att0, "head_dim", None) or cfg.hidden_size // cfg.num_attention_heads
         self.H = H = cfg.num_attention_heads
@@ -132,10 +175,11 @@ class LeanLlama:
                                     torch.arange(Hkv * D) + (H + Hkv) * D]).to(self.device)
 
         def eps_const(norm):  # sqrt(d * eps): the norm's epsilon once sqrt(d) is folded into the next matrix
-            return torch.tensor(math.sqrt(d * float(norm.variance_epsilon)), device=self.device, dtype=self.dtype)
+            return torch.tensor(math.sqrt(d * float(norm.variance_epsilon)), device=self.device,
+                                dtype=torch.float32 if self.half else self.dtype)  # half: fp32 statistics
 
         # Packed weights (CPU): oneDNN's blocked layout for its linear kernel, made once per `load`.
-        self.packed = self.device.type == "cpu" and d >= PACK_MIN_HIDDEN and pack_available(wdt)
+        self.packed = self.device.type == "cpu" and d >= PACK_MIN_HIDDEN and not self.half and pack_available(wdt)
 
         def buf(rows, cols_):  # (out, in): a dense matrix `load` writes, or a placeholder it replaces (packed)
             shape = (rows, cols_)
@@ -151,10 +195,14 @@ class LeanLlama:
             self._shapes.append({1: s_qkv, 3: s_o, 6: s_gu, 9: s_down})
         self.cf = eps_const(base.norm)
         self.head_w, self._head_shape = buf(V, d)  # (V, d)
+        self.head_b = None
         self.V = V
         self.load(model)
         self._bound = -1
         self._cis = None
+        self._states: OrderedDict = OrderedDict()  # (rows, cols) -> _Static with a captured graph (CUDA)
+        self._graph_failed = False  # a capture raised: this decoder steps eagerly from then on
+        self.st = None
 
     @torch.no_grad()
     def load(self, model) -> None:
@@ -188,6 +236,17 @@ class LeanLlama:
             if self.packed:
                 fused[i] = pack(w)
 
+        def put(fused, i, b):  # a bias in the compute dtype, written in place where the previous load left one
+            if b is None:  # (so captured CUDA graphs keep reading the right address)
+                fused[i] = None
+                return
+            b = b.to(self.dtype)
+            cur = fused[i]
+            if cur is not None and cur.shape == b.shape and cur.dtype == b.dtype and cur.device == b.device:
+                cur.copy_(b)
+            else:
+                fused[i] = b.clone()
+
         for layer, fused, shapes in zip(base.layers, self.layers, self._shapes):
             a, m = layer.self_attn, layer.mlp
             g1 = fold(layer.input_layernorm)
@@ -201,34 +260,56 @@ class LeanLlama:
             if bias(a.q_proj) is not None:
                 row_scale = torch.ones(len(self._qkv_rows), device=self.device)
                 row_scale[:H * D] = sc
-                fused[2] = (torch.cat([bias(a.q_proj), bias(a.k_proj), bias(a.v_proj)]).float()
-                            .index_select(0, self._qkv_rows) * row_scale).to(self.dtype)
+                put(fused, 2, torch.cat([bias(a.q_proj), bias(a.k_proj), bias(a.v_proj)]).float()
+                    .index_select(0, self._qkv_rows) * row_scale)
+            else:
+                fused[2] = None
             o_w = dest(fused, 3, shapes[3])
             o_w.copy_(_weight(a.o_proj))  # (copy_ and mul(out=) round to a bf16 buffer)
             done(fused, 3, o_w)
-            fused[4] = bias(a.o_proj)
+            put(fused, 4, bias(a.o_proj))
             gu_w, inter = dest(fused, 6, shapes[6]), fused[8]
             torch.mul(_weight(m.gate_proj).float(), g2[None, :], out=gu_w[:inter])
             torch.mul(_weight(m.up_proj).float(), g2[None, :], out=gu_w[inter:])
             done(fused, 6, gu_w)
-            fused[7] = None if bias(m.gate_proj) is None else torch.cat([bias(m.gate_proj), bias(m.up_proj)])
+            put(fused, 7, None if bias(m.gate_proj) is None else torch.cat([bias(m.gate_proj), bias(m.up_proj)]))
             down_w = dest(fused, 9, shapes[9])
             down_w.copy_(_weight(m.down_proj))
             done(fused, 9, down_w)
-            fused[10] = bias(m.down_proj)
+            put(fused, 10, bias(m.down_proj))
         self.embed = base.embed_tokens.weight.detach()  # (V, d), the live parameter (no copy)
         head = [self.head_w]
         head_w = dest(head, 0, self._head_shape)
         torch.mul(_weight(model.lm_head).float(), fold(base.norm)[None, :], out=head_w)
         done(head, 0, head_w)
         self.head_w = head[0]
-        self.head_b = bias(model.lm_head)
+        head_b = [self.head_b]
+        put(head_b, 0, bias(model.lm_head))
+        self.head_b = head_b[0]
 
     # ------------------------------------------------------------------ helpers
     @staticmethod
     def _norm(x, c):
-        """RMSNorm without its weight (folded into the next matrix): x / sqrt(|x|^2 + d*eps) (* sqrt(d) folded)."""
+        """RMSNorm without its weight (folded into the next matrix): x / sqrt(|x|^2 + d*eps) (* sqrt(d) folded).
+        Half x: computed in fp32, rounded once."""
+        if x.dtype in HALF_DTYPES:
+            xf = x.float()
+            return (xf / torch.hypot(torch.linalg.vector_norm(xf, dim=-1, keepdim=True), c)).to(x.dtype)
         return x / torch.hypot(torch.linalg.vector_norm(x, dim=-1, keepdim=True), c)
+
+    @staticmethod
+    def _rotate(x, cis):
+        """RoPE on interleaved pairs: x (N, n, D), cis (N, 1, D/2) complex -> (N, n, D) in x's dtype (half x:
+        rotated in fp32, rounded once; `view_as_complex` has no bf16)."""
+        N, n, D = x.shape
+        if x.dtype in HALF_DTYPES:
+            z = torch.view_as_complex(x.float().view(N, n, D // 2, 2))
+            return torch.view_as_real(z * cis).view(N, n, D).to(x.dtype)
+        return torch.view_as_real(torch.view_as_complex(x.reshape(N, n, D // 2, 2)) * cis).view(N, n, D)
+
+    def _embed(self, tok):  # (N,) -> (N, d) in the compute dtype (bf16 compute of fp32 weights: a cast)
+        x = F.embedding(tok, self.embed)
+        return x if x.dtype == self.dtype else x.to(self.dtype)
 
     @staticmethod
     def _lin(x, w, b):
@@ -267,34 +348,61 @@ class LeanLlama:
         x = self._acc(x, F.silu(gu[:, :inter]).mul_(gu[:, inter:]), down_w)  # (N, d)
         return x if down_b is None else x + down_b
 
-    def _logits(self, x):  # (N, d) -> (N, V)
+    def _logits(self, x):  # (N, d) -> (N, V) in the compute dtype (the engine widens half logits to fp32)
         return self._lin(self._norm(x, self.cf), self.head_w, self.head_b)
 
     # ------------------------------------------------------------------ engine interface
-    def start(self, rows: int, cols: int, max_pos: int) -> None:
+    def start(self, rows: int, cols: int, max_pos: int, static: bool = False) -> None:
+        """Allocate the cache for `rows` rows and `cols` columns, positions < max_pos. static: for `step()`
+        (cols rounded up to STATIC_COLS, a zeroed cache, keys masked until written; on CUDA a captured graph)."""
         n, Hkv, D = len(self.layers), self.Hkv, self.D
+        if self._cis is None or self._cis.shape[0] < max_pos:  # grows (doubling), kept across calls
+            self._cis = self._rope_table(max(max_pos, 256, 2 * (0 if self._cis is None else self._cis.shape[0])))
+        self.cis = self._cis
+        self.st = None
+        if static:
+            cols = -(-cols // STATIC_COLS) * STATIC_COLS
+            self.rows, self.cols = rows, cols
+            st = self._static_state(rows, cols)
+            self.st = st
+            self.k, self.v, self.key_bias = st.k, st.v, st.key_bias
+            st.k.zero_()  # (the warm-up before a capture wrote into them; a reused state holds the last batch)
+            st.v.zero_()
+            st.key_bias.fill_(float("-inf"))  # every key masked until prefill / a step writes it
+            self.kc = self.vc = None
+            self._bound = -1
+            return
         self.k = torch.empty(n, rows, Hkv, cols, D, device=self.device, dtype=self.dtype)
         self.v = torch.empty(n, rows, Hkv, cols, D, device=self.device, dtype=self.dtype)
-        self.kc = torch.view_as_complex(self.k.view(n, rows, Hkv, cols, D // 2, 2))  # complex views
-        self.vc = torch.view_as_complex(self.v.view(n, rows, Hkv, cols, D // 2, 2))
+        if self.half:  # no complex bf16: rotated keys are written as reals
+            self.kc = self.vc = None
+        else:
+            self.kc = torch.view_as_complex(self.k.view(n, rows, Hkv, cols, D // 2, 2))  # complex views
+            self.vc = torch.view_as_complex(self.v.view(n, rows, Hkv, cols, D // 2, 2))
         # Additive key mask per (row, kv head): 0 for real keys, -inf for prompt padding.
         self.key_bias = torch.zeros(rows, Hkv, 1, cols, device=self.device, dtype=self.dtype)
-        if self._cis is None or self._cis.shape[0] < max_pos:  # grows, kept across calls
-            self._cis = self._rope_table(max(max_pos, 256))
-        self.cis = self._cis
         self.rows, self.cols = rows, cols
         self._bound = -1
 
     def release(self) -> None:
-        """Drop the KV cache (the fused weights stay for the next call)."""
-        self.k = self.v = self.kc = self.vc = self.key_bias = self.cis = self._views = self._bias = None
+        """Drop the KV cache (the fused weights stay for the next call; so do captured graphs and their
+        buffers, see `drop_graphs`)."""
+        self.k = self.v = self.kc = self.vc = self.key_bias = self.cis = self._views = self._bias = self.st = None
         self._bound = -1
+
+    def drop_graphs(self) -> None:
+        """Free the captured CUDA graphs and the caches they own (the next static `start` captures again)."""
+        self._states.clear()
 
     def _bind(self, B: int) -> None:
         """Per-layer views of the first B cache rows, rebuilt only when B changes (finished rows dropped)."""
         Hkv, D, cols = self.Hkv, self.D, self.cols
-        self._views = [(self.kc[li, :B], self.vc[li, :B], self.k[li, :B].view(B * Hkv, cols, D).transpose(1, 2),
-                        self.v[li, :B].view(B * Hkv, cols, D)) for li in range(len(self.layers))]
+        if self.half:  # real views of k / v where the fp32 path writes through complex ones
+            self._views = [(self.k[li, :B], self.v[li, :B], self.k[li, :B].view(B * Hkv, cols, D).transpose(1, 2),
+                            self.v[li, :B].view(B * Hkv, cols, D)) for li in range(len(self.layers))]
+        else:
+            self._views = [(self.kc[li, :B], self.vc[li, :B], self.k[li, :B].view(B * Hkv, cols, D).transpose(1, 2),
+                            self.v[li, :B].view(B * Hkv, cols, D)) for li in range(len(self.layers))]
         self._bias = self.key_bias[:B].view(B * Hkv, 1, cols)
         self._bound = B
 
@@ -353,12 +461,11 @@ class LeanLlama:
         attn_bias = torch.zeros(U, 1, Tp, Tp, device=self.device, dtype=self.dtype)
         attn_bias.masked_fill_(~allowed[:, None], float("-inf"))
         cis = self.cis.index_select(0, pos.reshape(-1))[:, None]  # (N, 1, D/2)
-        x = F.embedding(ids.reshape(-1), self.embed)  # (N, d)
+        x = self._embed(ids.reshape(-1))  # (N, d)
         for li, layer in enumerate(self.layers):
             c1, qkv_w, qkv_b, o_w, o_b = layer[:5]
             qkv = self._lin(self._norm(x, c1), qkv_w, qkv_b).view(N, H + 2 * Hkv, D)
-            z = torch.view_as_complex(qkv[:, :H + Hkv].reshape(N, H + Hkv, D // 2, 2))
-            qk = torch.view_as_real(z * cis).view(U, Tp, H + Hkv, D).transpose(1, 2)  # (U, H+Hkv, Tp, D)
+            qk = self._rotate(qkv[:, :H + Hkv], cis).view(U, Tp, H + Hkv, D).transpose(1, 2)  # (U, H+Hkv, Tp, D)
             q, k = qk[:, :H], qk[:, H:]
             v = qkv[:, H + Hkv:].view(U, Tp, Hkv, D).transpose(1, 2)  # (U, Hkv, Tp, D)
             if identity:
@@ -387,6 +494,10 @@ class LeanLlama:
         U, H, Tq, D = q.shape
         rep = self.rep
         q = q.reshape(U, self.Hkv, rep * Tq, D)
+        if self.half:  # fused SDPA: fp32 scores and softmax inside (module docstring)
+            Tk = k.shape[2]
+            mask = bias[:, :, None].expand(U, 1, rep, Tq, Tk).reshape(U, 1, rep * Tq, Tk)
+            return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, scale=1.0).view(U, H, Tq, D)
         s = torch.matmul(q, k.transpose(-1, -2)).view(U, self.Hkv, rep, Tq, -1)  # (U, Hkv, rep, Tq, Tk)
         s = torch.softmax(s.add_(bias[:, :, None]), -1).view(U, self.Hkv, rep * Tq, -1)
         return torch.matmul(s, v).view(U, H, Tq, D)
@@ -401,7 +512,9 @@ class LeanLlama:
         NH, BH, HD = H + 2 * Hkv, B * Hkv, H * D
         cis = self.cis.index_select(0, pos)[:, None]  # (B, 1, D/2) complex
         bias = self._bias[:, :, :T]  # (B*Hkv, 1, T)
-        x = F.embedding(tok.view(B), self.embed)  # (B, d)
+        x = self._embed(tok.view(B))  # (B, d)
+        if self.half:
+            return self._decode_half(x, cis, bias, col)
         split = (H, Hkv, Hkv)
         norm, hypot, bmm, softmax, mul, silu = torch.linalg.vector_norm, torch.hypot, torch.bmm, torch.softmax, \
             torch.mul, F.silu
@@ -426,6 +539,33 @@ class LeanLlama:
                 x = x + down_b
         return self._logits(x)  # (B, V)
 
+    def _decode_half(self, x, cis, bias, col: int):
+        """`decode` in a half dtype (module docstring): x (B, d) embedded tokens, cis (B, 1, D/2); the key mask is
+        read as (B, Hkv, 1, T) for SDPA (`bias` is its (B*Hkv, 1, T) view, unused)."""
+        B = x.shape[0]
+        T = col + 1
+        H, Hkv, D, rep = self.H, self.Hkv, self.D, self.rep
+        HD = H * D
+        lin, acc, nrm = self._lin, self._acc, self._norm
+        mask = self.key_bias[:B, :, :, :T]  # (B, Hkv, 1, T)
+        for layer, (kk, vk, _, _) in zip(self.layers, self._views):
+            c1, qkv_w, qkv_b, o_w, o_b, c2, gu_w, gu_b, inter, down_w, down_b = layer
+            qkv = lin(nrm(x, c1), qkv_w, qkv_b).view(B, H + 2 * Hkv, D)  # (B, NH, D)
+            qk = self._rotate(qkv[:, :H + Hkv], cis)  # (B, H+Hkv, D) roped (fp32 inside)
+            q = qk[:, :H].reshape(B, Hkv, rep, D)  # a kv head's rep query heads as its "sequence"
+            kk[:, :, col] = qk[:, H:]
+            vk[:, :, col] = qkv[:, H + Hkv:]
+            a = F.scaled_dot_product_attention(q, kk[:, :, :T], vk[:, :, :T], attn_mask=mask, scale=1.0)
+            acc(x, a.reshape(B, HD), o_w)  # residual += attn @ Wo, in place
+            if o_b is not None:
+                x = x + o_b
+            gu = lin(nrm(x, c2), gu_w, gu_b)  # (B, 2I)
+            g, u = gu.split_with_sizes((inter, inter), 1)
+            acc(x, F.silu(g).mul_(u), down_w)
+            if down_b is not None:
+                x = x + down_b
+        return self._logits(x)  # (B, V)
+
     def select(self, order: list[int], col: int) -> None:
         """New active rows = old rows `order` (old active count B0 -> len(order)); cache columns < col valid."""
         holes = [i for i, o in enumerate(order) if o != i]
@@ -436,3 +576,123 @@ class LeanLlama:
             self.v[:, dst, :, :col] = self.v[:, src, :, :col]
             self.key_bias[dst, :, :, :col] = self.key_bias[src, :, :, :col]
         self._bound = -1
+
+    # ------------------------------------------------------------------ static decode step (module docstring)
+    def decode_static(self, tok, pos, col):
+        """One decode step with static shapes over all `rows` rows and the whole cache width: tok (rows, 1) long,
+        pos (rows,) long positions, col (1,) long cache column, all device tensors -> logits (rows, V) fp32.
+        Writes k / v at column `col` (`index_copy_`) and unmasks it (`index_fill_`); no host value is read."""
+        B, cols = self.rows, self.cols
+        H, Hkv, D, rep, d = self.H, self.Hkv, self.D, self.rep, self.d
+        NH, BH, HD = H + 2 * Hkv, B * Hkv, H * D
+        half = self.half
+        cis = self.cis.index_select(0, pos)[:, None]  # (B, 1, D/2) complex
+        self.key_bias.index_fill_(3, col, 0.0)  # the column written this step becomes visible to every row
+        bias = self.key_bias.view(BH, 1, cols)  # (B*Hkv, 1, cols): 0 written keys, -inf padding / unwritten
+        x = self._embed(tok.view(B))  # (B, d)
+        lin, acc, nrm = self._lin, self._acc, self._norm
+        for li, layer in enumerate(self.layers):
+            c1, qkv_w, qkv_b, o_w, o_b, c2, gu_w, gu_b, inter, down_w, down_b = layer
+            kl, vl = self.k[li], self.v[li]  # (B, Hkv, cols, D)
+            qkv = lin(nrm(x, c1), qkv_w, qkv_b).view(B, NH, D)
+            qk = self._rotate(qkv[:, :H + Hkv], cis)  # (B, H+Hkv, D)
+            q = qk[:, :H].reshape(BH, rep, D)  # roped q (softmax scale folded in)
+            kl.index_copy_(2, col, qk[:, H:, None])  # (B, Hkv, 1, D) into column col
+            vl.index_copy_(2, col, qkv[:, H + Hkv:, None])
+            if half:  # fused SDPA (fp32 scores and softmax inside): q (B, Hkv, rep, D) over the whole cache
+                a = F.scaled_dot_product_attention(q.view(B, Hkv, rep, D), kl, vl, attn_mask=self.key_bias, scale=1.0)
+            else:
+                s = torch.softmax(torch.baddbmm(bias, q, kl.view(BH, cols, D).transpose(1, 2)), -1)  # (BH, rep, cols)
+                a = torch.bmm(s, vl.view(BH, cols, D))  # (B*Hkv, rep, D)
+            acc(x, a.reshape(B, HD), o_w)  # residual += attn @ Wo, in place
+            if o_b is not None:
+                x = x + o_b
+            gu = lin(nrm(x, c2), gu_w, gu_b)  # (B, 2I)
+            g, u = gu.split_with_sizes((inter, inter), 1)
+            acc(x, F.silu(g).mul_(u), down_w)
+            if down_b is not None:
+                x = x + down_b
+        return self._logits(x.view(B, d)).float()  # (B, V) fp32 for the sampler
+
+    def step(self) -> torch.Tensor:
+        """`decode_static` on the static state's input buffers `st.tok`, `st.pos`, `st.col` (the caller writes
+        them): one graph replay when captured, else eager. -> logits (rows, V) fp32, overwritten by the next step."""
+        st = self.st
+        if st.graph is not None:
+            st.graph.replay()
+            return st.logits
+        return self.decode_static(st.tok, st.pos, st.col)
+
+    def _tensors(self) -> tuple:
+        """Addresses of every tensor the step reads besides the cache (a captured graph holds them)."""
+        ts = [self.embed, self.cf, self.head_w, self.head_b, self._cis]
+        for layer in self.layers:
+            ts += [t for t in layer if isinstance(t, torch.Tensor)]
+        return tuple(None if t is None else t.data_ptr() for t in ts)
+
+    def _static_state(self, rows: int, cols: int) -> "_Static":
+        """The static buffers for (rows, cols): on CUDA with CUDA_GRAPHS, kept with a graph captured over them
+        (recaptured when a weight's address or the RoPE table changed); else fresh, for eager steps."""
+        graphs = CUDA_GRAPHS and self.device.type == "cuda" and not self._graph_failed
+        key = (rows, cols)
+        st = self._states.get(key) if graphs else None
+        if st is not None and st.ptrs == self._tensors():
+            self._states.move_to_end(key)
+            return st
+        if st is not None:
+            del self._states[key]
+            st = None
+        st = _Static(self, rows, cols)
+        if graphs:
+            self._capture(st)
+            if st.graph is not None:
+                self._states[key] = st
+                while len(self._states) > GRAPH_CACHE:
+                    self._states.popitem(last=False)
+        return st
+
+    def _capture(self, st: "_Static") -> None:
+        """Capture `decode_static` over st's buffers (torch.cuda.graphs recipe: warm-up on a side stream, then
+        capture). Any failure leaves st.graph None: the step runs eagerly (warned once per process)."""
+        global _graph_warned
+        self.k, self.v, self.key_bias, self.rows, self.cols = st.k, st.v, st.key_bias, st.rows, st.cols
+        st.col.fill_(st.cols - 1)
+        try:
+            side = torch.cuda.Stream(self.device)
+            side.wait_stream(torch.cuda.current_stream(self.device))
+            with torch.cuda.stream(side):
+                for _ in range(2):
+                    self.decode_static(st.tok, st.pos, st.col)
+            torch.cuda.current_stream(self.device).wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                st.logits = self.decode_static(st.tok, st.pos, st.col)
+            st.graph, st.ptrs = graph, self._tensors()
+        except Exception as e:  # noqa: BLE001  (never crash generation: the same step runs eagerly)
+            st.graph = st.logits = None
+            self._graph_failed = True
+            try:
+                torch.cuda.synchronize(self.device)
+            except Exception:  # noqa: BLE001
+                pass
+            if not _graph_warned:
+                _graph_warned = True
+                log.warning("lean decode: CUDA graph capture failed (%s: %s); decoding eagerly",
+                            type(e).__name__, str(e).splitlines()[0] if str(e) else "")
+
+
+class _Static:
+    """Device buffers of the static decode step for one (rows, cols) shape: the zeroed KV cache, the key mask,
+    the step's inputs tok (rows, 1), pos (rows,), col (1,), and on CUDA the captured graph and its logits."""
+
+    def __init__(self, lean: LeanLlama, rows: int, cols: int):
+        dev, dt = lean.device, lean.dtype
+        n, Hkv, D = len(lean.layers), lean.Hkv, lean.D
+        self.rows, self.cols = rows, cols
+        self.k = torch.zeros(n, rows, Hkv, cols, D, device=dev, dtype=dt)  # (L, B, Hkv, cols, D)
+        self.v = torch.zeros(n, rows, Hkv, cols, D, device=dev, dtype=dt)
+        self.key_bias = torch.full((rows, Hkv, 1, cols), float("-inf"), device=dev, dtype=dt)
+        self.tok = torch.zeros(rows, 1, dtype=torch.long, device=dev)
+        self.pos = torch.zeros(rows, dtype=torch.long, device=dev)
+        self.col = torch.zeros(1, dtype=torch.long, device=dev)
+        self.graph = self.logits = self.ptrs = None

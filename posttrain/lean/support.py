@@ -6,11 +6,14 @@ rollout engine's decoder (`posttrain.lean.decode`) and the differentiable traini
 of `LEAN_MODEL_TYPES` (llama / mistral / qwen2) with a silu MLP, Llama-style RMSNorms, no q/k norms, no
 logit soft-capping or scaling, RoPE with static frequencies (default, linear, llama3, yarn: `inv_freq` and
 `attention_scaling` read from the module; not dynamic / longrope), a sequence no longer than a sliding
-window, fp32 weights on one device, no sharded parameters (FSDP / DTensor / ZeRO-3 keep
-only a shard outside the model's own forward) and no accelerate device-map hooks. Then per mode:
-- "decode" (the engine): not under torch.autocast (generation precision is `rollout.dtype`'s), a
-  `*ForCausalLM`, or a peft model with plain LoRA adapters on Linear layers (the decoder fuses base + deltas
-  into its weights and honours disabled adapters).
+window, weights on one device (train: fp32; decode: fp32, bf16 or fp16), no sharded parameters (FSDP /
+DTensor / ZeRO-3 keep only a shard outside the model's own forward) and no accelerate device-map hooks.
+Then per mode:
+- "decode" (the engine): fp32, bf16 or fp16 weights (half weights run natively in their dtype, see
+  `posttrain.lean.decode`); not under torch.autocast, except bf16 autocast on CUDA (accelerate's bf16 mixed
+  precision), where the decoder computes in bf16 on bf16 copies of the weights (`decode_autocast`: autocast
+  would have run those matmuls in bf16 anyway); a `*ForCausalLM`, or a peft model with plain LoRA adapters on
+  Linear layers (the decoder fuses base + deltas into its weights and honours disabled adapters).
 - "train" (`sequence_logprobs`, reward / value forwards): the object passed is itself a `*ForCausalLM`
   (head="lm") or `*ForSequenceClassification` (head="score") `PreTrainedModel` (not DDP / FSDP / peft /
   torch.compile-wrapped: a wrapper needs its own forward for gradient sync or adapters), plain nn.Linear
@@ -99,16 +102,34 @@ def rope_cis(inv_freq: torch.Tensor, attention_scaling: float, positions: torch.
 
 
 # ----------------------------------------------------------------------------- what neither path implements
-def autocast_problem(device) -> str | None:
-    """The engine's lean decoder computes in its weights' dtype: under torch.autocast the caller falls back to
-    the model's own forward, which follows the autocast policy. (The training forward runs under bf16
-    autocast: `train_autocast`.)"""
+HALF_DTYPES = (torch.bfloat16, torch.float16)
+DECODE_DTYPES = (torch.float32,) + HALF_DTYPES
+
+
+def decode_autocast(device) -> tuple[torch.dtype | None, str | None]:
+    """The engine decoder under torch.autocast, as (compute dtype or None when autocast is off, why it cannot run
+    or None). bf16 autocast on CUDA (accelerate's bf16 mixed precision): the decoder computes in bf16 on bf16
+    copies of fp32 weights, as autocast would have run its matmuls (the residual stream is bf16 too, as in a
+    bf16 model; fp32 where `posttrain.lean.decode` says). Any other autocast (fp16, or on CPU, where bf16
+    elementwise work is slow and `rollout.dtype` chooses the precision): the caller falls back to the model's
+    own forward, which follows the autocast policy. (The training forward runs under bf16 autocast:
+    `train_autocast`.)"""
     kind = torch.device(device).type
     try:
         on = torch.is_autocast_enabled(kind)
     except (TypeError, RuntimeError):  # a device type autocast does not know
         on = False
-    return f"torch.autocast is on for {kind} (mixed precision)" if on else None
+    if not on:
+        return None, None
+    dtype = torch.get_autocast_dtype(kind)
+    if kind == "cuda" and dtype == torch.bfloat16:
+        return torch.bfloat16, None
+    return None, f"torch.autocast to {dtype} is on for {kind} (mixed precision)"
+
+
+def autocast_problem(device) -> str | None:
+    """Why the engine's lean decoder cannot run under the autocast state of `device`, or None (`decode_autocast`)."""
+    return decode_autocast(device)[1]
 
 
 def _accelerate_mixed_precision() -> str | None:
@@ -238,8 +259,8 @@ def lean_support(model, seq_len: int | None = None, *, mode: str = "decode", hea
             return False, "embedding with max_norm / scale_grad_by_freq / sparse"
         if any(p.dtype != torch.float32 for p in model.parameters()):
             return False, "not every parameter is fp32"
-    elif effective_weight(out).dtype != torch.float32:
-        return False, f"dtype {effective_weight(out).dtype} (the lean path is fp32)"
+    elif effective_weight(out).dtype not in DECODE_DTYPES:
+        return False, f"dtype {effective_weight(out).dtype} (the lean decoder runs fp32, bf16 or fp16 weights)"
     devices = {p.device for p in model.parameters()}
     if len(devices) != 1 or next(iter(devices)).type == "meta":
         return False, f"weights on several devices or on meta ({sorted(str(d) for d in devices)})"
@@ -282,4 +303,8 @@ def lean_support(model, seq_len: int | None = None, *, mode: str = "decode", hea
         return False, "the final norm is not a Llama-style RMSNorm"
     if train:
         return True, f"lean training forward ({mt}{', bf16 autocast' if amp is not None else ''})"
-    return True, f"lean Llama-family path ({mt}{', LoRA fused' if lora else ''})"
+    half = effective_weight(out).dtype
+    prec = f", {str(half).removeprefix('torch.')} weights" if half in HALF_DTYPES else ""
+    if decode_autocast(device)[0] is not None:
+        prec += ", bf16 autocast"
+    return True, f"lean Llama-family path ({mt}{', LoRA fused' if lora else ''}{prec})"

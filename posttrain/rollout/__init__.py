@@ -38,15 +38,19 @@ Contract
 - Speed path. `select_backend` picks the lean Llama-family forward (`posttrain.lean.decode.LeanLlama`: fused and
   pre-transposed weights with norms and the softmax scale folded in, RoPE as one complex multiply,
   preallocated KV cache written in place, explicit GEMV attention; see its docstring) when the model
-  supports it (llama / mistral / qwen2 types, fp32, plain nn.Linear), else the model's own forward
-  with its own cache (other architectures, peft adapters, quantised layers, bf16). The reason is
-  returned by `select_backend` and logged at DEBUG. Both paths drop finished rows from the active
+  supports it (llama / mistral / qwen2 types, fp32, bf16 or fp16 weights, plain nn.Linear or LoRA), else the
+  model's own forward with its own cache (other architectures, other peft adapters, quantised layers). The reason
+  is returned by `select_backend` and logged at DEBUG. On the CPU both paths drop finished rows from the active
   batch once >= 1/8 of it has finished (the lean path moves live rows into the holes: a compaction
-  copies only as many cache rows as finished). Prompts are sorted by length before micro-batching
-  and, on the lean path, prefilled in length buckets. The per-token loop runs under
+  copies only as many cache rows as finished), and the loop checks for EOS after every step (one host sync).
+  On CUDA the lean path runs a static-shape decode step (every row of the micro-batch, attention over the whole
+  preallocated cache under a key mask) captured once in a CUDA graph and replayed, and EOS is checked every
+  `EOS_CHECK_CUDA` steps from the recorded tokens (the same lengths, reasons and log-probs as a per-step check);
+  `posttrain.lean.decode` and `engine` say how and which switches turn it off. Prompts are sorted by length before
+  micro-batching and, on the lean path, prefilled in length buckets. The per-token loop runs under
   `torch.inference_mode` in eval mode (no dropout) and does per step: one forward, one sampler call
-  (softmax, cumsum, searchsorted), three buffer writes, and one host sync for EOS (and one for stop
-  candidates when stop strings are set). Fused weights are cached per model and rebuilt when any
+  (softmax, cumsum, searchsorted), three buffer writes (and a host sync for stop candidates when stop strings
+  are set). Fused weights are cached per model and rebuilt when any
   parameter's version counter moved, so an optimizer step between calls is always seen (torch's fused
   AdamW writes weights without bumping the counters: `loop.build_optimizer` bumps them after each step with
   `torch.autograd.graph.increment_version`; do the same in a loop of your own with a fused optimizer). Not

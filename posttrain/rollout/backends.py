@@ -6,6 +6,9 @@ else. Both expose the calls the engine's loop uses:
     decode(tok, pos, col)                one token per active row (B, 1) -> logits (B, V)
     select(order, col)                   keep / reorder active rows (finished rows dropped)
     release()                            drop the cache
+The lean decoder also has a static-shape step (`start(..., static=True)`, `st` input buffers, `step()`: all rows
+every step, a replayed CUDA graph on CUDA; see posttrain.lean.decode), which the engine uses on CUDA; the HF
+forward has none, so on CUDA it runs the compacting loop (with EOS checked every few steps, see engine).
 """
 from __future__ import annotations
 

@@ -1,18 +1,36 @@
-"""`generate`: the batched sampling loop (see `posttrain.rollout` for the contract)."""
+"""`generate`: the batched sampling loop (see `posttrain.rollout` for the contract).
+
+Precision of the lean engine (`select_backend`): fp32 weights run fp32, or with `rollout.dtype=bfloat16` on
+CPU bf16 weight copies under fp32 activations (compressed weights). bf16 / fp16 model weights run natively
+in their dtype (posttrain.lean.decode, "Half precision"). On CUDA, `rollout.dtype=bfloat16` and bf16
+torch.autocast (accelerate's bf16 mixed precision, `lean.support.decode_autocast`) both compute in bf16 on bf16
+copies of fp32 weights (cached per model, refreshed when parameters change): autocast would have run those
+matmuls in bf16 anyway, and the bf16 KV cache halves what each step reads. Other autocast (fp16, or any on
+CPU) falls back to the HF forward.
+
+The loop on CUDA (`_run_micro_batch`): with the lean decoder, the static decode step (`LeanLlama.step`: every
+row of the micro-batch every step, no compaction, a replayed CUDA graph; `STATIC_DECODE`, env
+POSTTRAIN_CUDA_GRAPHS=0 for eager steps) and EOS checked every `EOS_CHECK_CUDA` steps instead of every step
+(a host sync each): the first EOS of each row within the window is found afterwards from the recorded
+tokens, so lengths, finish reasons and log-probs equal a per-step check; generation stops at the first
+check after every row has finished. With stop strings (decoded text, a host sync anyway) EOS is checked every
+step. On CPU: per-step checks and compaction of finished rows, as before.
+"""
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import weakref
 from typing import Callable, Sequence
 
 import torch
 
 from ..chat import encode_prompts, is_conversation
-from ..models import unwrap_model, weights_signature
+from ..models import model_device, unwrap_model, weights_signature
 from ..runtime import tune_malloc
 from ..lean.decode import LeanLlama
-from ..lean.support import lean_support
+from ..lean.support import HALF_DTYPES, decode_autocast, effective_weight, lean_support
 from .backends import HFForward
 from .records import Rollout, finish_rollouts
 from .sampling import Sampler, SamplingParams, find_stop, row_uniforms, stop_candidates
@@ -23,6 +41,12 @@ DEFAULT_MAX_BATCH_TOKENS = 16384
 BACKENDS = ("auto", "lean", "hf", "vllm")
 _defaults: dict = {"backend": "auto", "vllm": {}, "dtype": "float32"}
 DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+# The static decode step (LeanLlama.step): None = with the lean decoder on CUDA; True forces it (CPU: eager
+# steps, for tests), False never (env POSTTRAIN_STATIC_DECODE=0). Graphs: posttrain.lean.decode.CUDA_GRAPHS.
+STATIC_DECODE: bool | None = None if os.environ.get("POSTTRAIN_STATIC_DECODE", "").strip().lower() not in \
+    ("0", "false", "no", "off") else False
+EOS_CHECK_CUDA = 16  # steps between EOS checks on CUDA (each is a host sync)
+EOS_CHECK_EVERY: int | None = None  # forces the interval on any device (None: EOS_CHECK_CUDA on CUDA, else 1)
 
 
 def configure(backend: str = "auto", dtype: str = "float32", **vllm_options) -> None:
@@ -79,22 +103,38 @@ def select_backend(model, max_len: int = 0, backend: str = "auto", dtype: str | 
     inner = unwrap_model(model)
     ok, why = lean_support(inner, max_len, mode="decode")
     if ok:
+        wdt, cdt, note = _lean_precision(inner, dtype)
+        mode = (wdt, cdt)
         sig = weights_signature(inner)
         hit = _lean_cache.get(inner)
-        if hit is None or hit[0] != sig or hit[3] != dtype:
+        if hit is None or hit[0] != sig or hit[3] != mode:
             layout = tuple((p.shape, p.dtype, p.device) for p in inner.parameters())
             lean = hit[1] if hit is not None else None
             with torch.no_grad():
-                if lean is not None and hit[2] == layout and hit[3] == dtype:
+                if lean is not None and hit[2] == layout and hit[3] == mode:
                     lean.load(inner)  # same parameter shapes, dtypes and devices: refresh in place
                 else:
-                    lean = LeanLlama(inner, weight_dtype=None if dtype == "float32" else DTYPES[dtype])
-            hit = (sig, lean, layout, dtype)
+                    lean = LeanLlama(inner, weight_dtype=wdt, compute_dtype=cdt)
+            hit = (sig, lean, layout, mode)
             _lean_cache[inner] = hit
-        return hit[1], why + ("" if dtype == "float32" else f" (weights {dtype})")
+        return hit[1], why + note
     if backend == "lean":
         raise ValueError(f"rollout backend 'lean' cannot run this model: {why}; use backend='auto' or 'hf'")
     return HFForward(model), f"HF forward ({why}{compressed})"
+
+
+def _lean_precision(inner, dtype: str) -> tuple[torch.dtype | None, torch.dtype | None, str]:
+    """(weight dtype, compute dtype, note for the reason) of the lean decoder (module docstring)."""
+    head = inner.get_base_model() if hasattr(inner, "peft_config") else inner
+    model_dt = effective_weight(head.lm_head).dtype
+    if model_dt in HALF_DTYPES:  # half weights: native, in their own dtype
+        return None, None, ""
+    amp, _ = decode_autocast(model_device(inner))
+    if amp is not None:
+        return amp, amp, f" (bf16 autocast: weights and compute {str(amp).removeprefix('torch.')})"
+    if dtype != "float32" and model_device(inner).type == "cuda":
+        return DTYPES[dtype], DTYPES[dtype], f" (weights and compute {dtype})"
+    return (None, None, "") if dtype == "float32" else (DTYPES[dtype], None, f" (weights {dtype})")
 
 
 def _tokenize(tokenizer, prompts) -> tuple[list[list[int]], list[str | None]]:
@@ -253,9 +293,32 @@ def plan_micro_batches(lengths: list[int], n: int, max_new: int, budget: int) ->
     return batches
 
 
+def _static_step(fwd) -> bool:
+    """Whether this micro-batch decodes with the static step (`STATIC_DECODE`; the HF forward has none)."""
+    if not hasattr(fwd, "step"):
+        return False
+    return fwd.device.type == "cuda" if STATIC_DECODE is None else bool(STATIC_DECODE)
+
+
+def _eos_interval(dev, stop_table) -> int:
+    """Steps between EOS checks: 1 with stop strings (their check decodes text every step anyway), else
+    `EOS_CHECK_EVERY`, or EOS_CHECK_CUDA on CUDA and 1 elsewhere."""
+    if stop_table is not None:
+        return 1
+    if EOS_CHECK_EVERY is not None:
+        return max(1, int(EOS_CHECK_EVERY))
+    return EOS_CHECK_CUDA if torch.device(dev).type == "cuda" else 1
+
+
 def _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_table, tokenizer, pad_id, results,
                      on_step=None):
-    """Decode one micro-batch into `results`; `on_step(rows_finished)` after each decoding step (progress)."""
+    """Decode one micro-batch into `results`; `on_step(rows_finished)` after each decoding step (progress).
+
+    Finishing is decided at checks, every `every` steps (`_eos_interval`): a check covers the steps
+    [t0, t] since the last one, and per live row takes the first of: its first EOS in the window (from the
+    recorded tokens), a stop string (every step only), its length limit -- the order a per-step check
+    finds them in, so the results do not depend on `every`. Rows keep decoding until the check that
+    finishes them (their extra tokens are cut off)."""
     dev = fwd.device
     prompts = []  # unique prompts of this micro-batch, in row order
     row_of_list = []
@@ -276,9 +339,15 @@ def _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_ta
     row_of = torch.tensor(row_of_list, dtype=torch.long, device=dev)  # (B,)
     row_limit = [limits[i] for i, _ in rows]
     steps = max(row_limit)
-    plen = torch.tensor([len(ids[i]) for i, _ in rows], dtype=torch.long, device=dev)  # (B,)
+    plen_l = [len(ids[i]) for i, _ in rows]
+    plen = torch.tensor(plen_l, dtype=torch.long, device=dev)  # (B,)
+    static = _static_step(fwd)
+    every = _eos_interval(dev, stop_table)
 
-    fwd.start(B, Tp + steps - 1, int(plen.max()) + steps)
+    if static:  # all rows every step, a replayed graph on CUDA (posttrain.lean.decode, "Static decode step")
+        fwd.start(B, Tp + steps - 1, max(plen_l) + steps, static=True)
+    else:
+        fwd.start(B, Tp + steps - 1, max(plen_l) + steps)
     u_all = row_uniforms(params.seed, torch.tensor([keys[i] for i, _ in rows], device=dev),
                          torch.tensor([j for _, j in rows], device=dev), steps)  # (B, steps)
     out_tok = torch.full((B, steps), pad_id, dtype=torch.long, device=dev)  # (B, steps), rows in slot order
@@ -306,49 +375,74 @@ def _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_ta
 
     logits = fwd.prefill(ids_t, valid, pos, row_of)  # (B, V)
     next_pos = plen.clone()  # (B,) position of the token fed at the next decode step
+    if static:
+        st = fwd.st  # the step's input buffers: token (B, 1), positions (B,), cache column (1,)
+        st.pos.copy_(plen)
+        st.col.fill_(Tp)
     tok = None
     Bact = B
+    t0 = 0  # first step not yet checked
     for t in range(steps):
         if t > 0:
-            logits = fwd.decode(tok, next_pos, Tp + t - 1)  # (Bact, V)
-            next_pos += 1
+            if static:
+                logits = fwd.step()  # (B, V) fp32
+                st.pos.add_(1)
+                st.col.add_(1)
+            else:
+                logits = fwd.decode(tok, next_pos, Tp + t - 1)  # (Bact, V)
+                next_pos += 1
         if logits.dtype != torch.float32:
             logits = logits.float()
         tok, lp, pol = sampler(logits, u_all[:Bact, t:t + 1])  # (Bact, 1) each
         out_tok[:Bact, t:t + 1] = tok
         out_lp[:Bact, t:t + 1] = lp
         out_pol[:Bact, t:t + 1] = pol
+        if static:
+            st.tok.copy_(tok)
 
-        newly: list[tuple[int, str]] = []
+        if t + 1 - t0 < every and t < steps - 1:  # no check this step
+            if on_step is not None:
+                on_step(B - alive_n)
+            continue
+        newly: list[tuple[int, str, int]] = []  # (slot, reason, step)
         if eos:
-            hit = (tok == eos_1) if eos_t is None else torch.isin(tok, eos_t)  # (Bact, 1)
+            win = out_tok[:Bact, t0:t + 1]  # (Bact, w)
+            hit = (win == eos_1) if eos_t is None else torch.isin(win, eos_t)  # (Bact, w)
             if bool(hit.any()):
-                newly += [(s, "eos") for s in hit.view(-1).nonzero().view(-1).tolist() if s not in dead]
-        if stop_table is not None:
+                if t == t0:
+                    first = [0 if h else -1 for h in hit.view(-1).tolist()]
+                else:  # first EOS step of each row in the window
+                    first = torch.where(hit.any(1), hit.int().argmax(1), -1).tolist()
+                for s, f in enumerate(first):
+                    if f >= 0 and s not in dead and t0 + f < row_limit[slot_row[s]]:
+                        newly.append((s, "eos", t0 + f))
+        if stop_table is not None:  # every == 1 here: t0 == t
             cand = stop_table[tok.view(-1)]
             if bool(cand.any()):
-                taken = {s for s, _ in newly}
+                taken = {s for s, _, _ in newly}
                 for s in cand.nonzero().view(-1).tolist():
                     if s in dead or s in taken:
                         continue
                     text = tokenizer.decode(out_tok[s, :t + 1].tolist(), skip_special_tokens=True)
                     if find_stop(text, params.stop) is not None:
-                        newly.append((s, "stop"))
-        if t in limit_steps:
+                        newly.append((s, "stop", t))
+        if any(tt in limit_steps for tt in range(t0, t + 1)):
             slot_of = {r: s for s, r in enumerate(slot_row[:Bact])}
-            taken = {s for s, _ in newly}
-            newly += [(slot_of[r], "length") for r in limit_steps[t] if r in slot_of and slot_of[r] not in dead
-                      and slot_of[r] not in taken]
-        for s, why in newly:
+            taken = {s for s, _, _ in newly}
+            for tt in range(t0, t + 1):
+                newly += [(slot_of[r], "length", tt) for r in limit_steps.get(tt, ()) if r in slot_of
+                          and slot_of[r] not in dead and slot_of[r] not in taken]
+        for s, why, tt in newly:
             dead.add(s)
-            length[slot_row[s]] = t + 1
+            length[slot_row[s]] = tt + 1
             reason[slot_row[s]] = why
+        t0 = t + 1
         alive_n = Bact - len(dead)
         if on_step is not None:
             on_step(B - alive_n)
         if alive_n == 0 or t == steps - 1:
             break
-        if dead and len(dead) >= max(1, Bact // 8):
+        if not static and dead and len(dead) >= max(1, Bact // 8):
             # Drop finished rows: the last live slots move into the holes (see backends.LeanLlama.select).
             retire(sorted(dead))
             n_new = alive_n

@@ -8,6 +8,10 @@ sampling, descending-probability order under top-k / top-p). A row's randomness 
 depends on its batch neighbours, the micro-batch split, or the order of prompts; see
 `posttrain.rollout` for what is guaranteed. Inverse-CDF needs one uniform per row and step where
 Gumbel-max needs one per vocabulary entry, and shares the sort / cumsum that top-p needs anyway.
+
+`Sampler.__call__` reads no value on the host (no `.item()`, no data-dependent shapes: argmax, softmax, cumsum,
+searchsorted, topk / sort, gather): on CUDA the engine's decode loop launches it after each graph replay without
+waiting for the GPU.
 """
 from __future__ import annotations
 

@@ -238,11 +238,14 @@ def test_backend_selection_reasons(trained):
     model = trained[0]
     assert select_backend(model, 64)[0].name == "lean"
     assert select_backend(model, 64, "hf")[0].name == "hf"
-    bf16 = build_model("tiny", trained[1], dtype=torch.bfloat16)
+    bf16 = build_model("tiny", trained[1], dtype=torch.bfloat16)  # half weights run natively (test_half_precision)
     fwd, why = select_backend(bf16, 64)
-    assert fwd.name == "hf" and "fp32" in why
+    assert fwd.name == "lean" and fwd.dtype == torch.bfloat16 and "bfloat16 weights" in why
+    fp64 = build_model("tiny", trained[1]).double()
+    fwd, why = select_backend(fp64, 64)
+    assert fwd.name == "hf" and "fp32, bf16 or fp16" in why
     with pytest.raises(ValueError, match="cannot run this model"):
-        select_backend(bf16, 64, "lean")
+        select_backend(fp64, 64, "lean")
 
 
 # ------------------------------------------------------------------ bf16 rollout weights (rollout.dtype)
