@@ -14,6 +14,8 @@
 - `write_jsonl(path, rows)`: rows as a JSONL file; returns the path.
 - `perturbed_sampler(generate, sigma)`: a rollout `generate` whose recorded log-probs are off by N(0, sigma^2)
   per token (seeded): a sampler that is not the trainer, for the rollout-correction tests.
+- `cuda` (tests marked `cuda`): skipped, naming why, where torch sees no CUDA GPU (`pytest_runtest_setup`); on a
+  GPU machine they run like the rest (each xdist worker that touches the GPU makes its own CUDA context, ~0.5 GB).
 - `learning` (tests marked `learning`): the seed and thread count of a run whose result is a learned number,
   and `learning.above(name, value, bound)` / `learning.below(...)` to assert it. The defaults (seed 0, the
   thread count each test pins) are what CI runs; POSTTRAIN_TEST_SEED / POSTTRAIN_TEST_THREADS change them, and with
@@ -52,6 +54,12 @@ def pytest_collection_modifyitems(config, items):
         r = 0 if item.get_closest_marker("real") else 1 if item.get_closest_marker("slow") else 2
         rank[module(item)] = min(rank.get(module(item), 2), r)
     items.sort(key=lambda item: rank[module(item)])  # stable: a module's tests stay together, in order
+
+
+def pytest_runtest_setup(item):
+    """Tests marked `cuda` skip where there is no CUDA GPU."""
+    if item.get_closest_marker("cuda") and not torch.cuda.is_available():
+        pytest.skip("needs a CUDA GPU (marked cuda): torch.cuda.is_available() is False here")
 
 
 TEST_SEED = int(os.environ.get("POSTTRAIN_TEST_SEED", "0"))

@@ -106,7 +106,11 @@ class VirtualDevice(TorchFunctionMode):
         return t
 
     def placed(self, t: torch.Tensor) -> bool:
-        return t in self.on_device
+        """On the virtual device, or on a real accelerator (on a GPU machine the trainers' models are there)."""
+        if t in self.on_device:
+            return True
+        with torch._C.DisableTorchFunction():
+            return t.device.type not in ("cpu", "meta")
 
     def put(self, model: torch.nn.Module) -> torch.nn.Module:
         """Put a module's parameters, buffers and grads on the virtual device (what `model.to(DEVICE)` does)."""

@@ -1,6 +1,8 @@
 """Two CPU processes through `accelerate launch` (gloo) give the loss curve of one process at the same
 global batch: the data is sharded by rank (loop.batch_indices), gradients are averaged by DDP, the
-token mean is taken over the global batch, and the logged loss is reduced over processes."""
+token mean is taken over the global batch, and the logged loss is reduced over processes. Every run here is on
+the CPU, also on a GPU machine (CUDA_VISIBLE_DEVICES="" in the runs' environment: two processes on one GPU would
+share a device, and the one-process run would not be the same computation)."""
 from __future__ import annotations
 
 import json
@@ -19,7 +21,7 @@ ARGS = ["--recipe", "tiny-summarize", "run.threads=1", "max_steps=6", "batch_siz
 
 
 def _run(cmd: list[str], cwd: Path) -> str:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", "CUDA_VISIBLE_DEVICES": ""}  # CPU runs
     r = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, f"{' '.join(cmd)} failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     return r.stdout

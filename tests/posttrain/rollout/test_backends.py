@@ -2,14 +2,16 @@
 one clear line before anything loads; the vLLM adapter (posttrain.rollout.vllm_backend) turns vLLM's outputs into
 the same Rollout records and pushes the policy's weights after every update.
 
-vLLM is not installed here and there is no GPU: the adapter tests run against a stand-in `vllm` module (below,
-~60 lines) that has the shapes of vLLM's public objects (LLM, SamplingParams, RequestOutput / CompletionOutput,
+vLLM is not installed here (nor on the GPU machine the suite also runs on): the adapter tests run against a
+stand-in `vllm` module (below, ~60 lines; with a stand-in "a CUDA GPU is there", whatever the machine has) that
+has the shapes of vLLM's public objects (LLM, SamplingParams, RequestOutput / CompletionOutput,
 Logprob, LLM.collective_rpc calling a function with the worker first) and returns scripted completions. It tests
 OUR side of the boundary (parameter mapping, record conversion, finish reasons, log-probs, weight export and
 when it happens, GRPO recomputing pi_old), not vLLM itself."""
 from __future__ import annotations
 
 import copy
+import importlib.util
 import json
 import shutil
 import subprocess
@@ -156,9 +158,26 @@ def test_vllm_backend_without_vllm_or_without_a_gpu_is_one_clear_line(tiny, tmp_
     model, tok = _load(tiny)
     with pytest.raises(ConfigError, match="pip install vllm"):
         generate(model, tok, ["2+2="], backend="vllm")
-    monkeypatch.setitem(sys.modules, "vllm", fake_vllm())  # installed, but no GPU here
+    real_has_cuda = vllm_backend._has_cuda
+    monkeypatch.setitem(sys.modules, "vllm", fake_vllm())  # installed, but no GPU (whatever this machine has)
+    monkeypatch.setattr(vllm_backend, "_has_cuda", lambda: False)
     with pytest.raises(ConfigError, match="needs a CUDA GPU"):
         configure("vllm")
+    # this machine as it is: the line that fits it (vLLM missing, or no GPU), or none where both are there
+    monkeypatch.delitem(sys.modules, "vllm")
+    monkeypatch.setattr(vllm_backend, "_has_cuda", real_has_cuda)
+    if importlib.util.find_spec("vllm") is None:
+        with pytest.raises(ConfigError, match="vLLM is not installed; pip install vllm"):
+            configure("vllm")
+    elif not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="needs a CUDA GPU"):
+            configure("vllm")
+    else:
+        try:
+            configure("vllm")
+            assert default_backend() == "vllm"
+        finally:
+            configure()  # the process default back to the built-in engine
     with pytest.raises(ValueError, match="rollout backend must be one of"):
         generate(model, tok, ["2+2="], backend="sglang")
 

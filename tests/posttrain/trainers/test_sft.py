@@ -105,6 +105,12 @@ def test_bf16_mixed_precision_trains_fp32_weights_with_nearly_the_fp32_losses(tm
     assert load_model(tmp_path / "bf16" / "tiny-summarize" / "sft" / "final").dtype == torch.float32
 
 
+# the CPU's bf16 probe decides `auto` only where torch sees no CUDA GPU (there the GPU's bf16 support decides)
+cpu_probe_only = pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA GPU decides run.mixed_precision=auto "
+                                    "by its bf16 support: no CPU probe runs (runtime.probe_decides_bf16)")
+
+
+@cpu_probe_only
 @pytest.mark.parametrize("ratio", [0.6, 2.0])
 def test_mixed_precision_auto_says_what_the_bf16_probe_measured_and_follows_it(tmp_path, capsys, monkeypatch, ratio):
     """run.mixed_precision=auto on a CPU whose flags list AVX512-BF16: the run prints the measured bf16 / fp32
@@ -122,6 +128,7 @@ def test_mixed_precision_auto_says_what_the_bf16_probe_measured_and_follows_it(t
     assert ("[run] bf16 autocast over fp32 weights" in out) == (chosen == "bf16")
 
 
+@cpu_probe_only
 def test_a_resumed_auto_run_keeps_the_bf16_decision_it_started_with(tmp_path, capsys, monkeypatch):
     """The probe that decides `auto` is a timing: under another load a resumed run could measure the other side of
     the threshold and switch precision half-way. The first run records its decision (precision.json); resume=true
