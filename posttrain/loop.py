@@ -219,6 +219,17 @@ def metric_extreme(name: str) -> str:
     return "max" if name.endswith("_max") or leaf.startswith("max_") else "min" if leaf.startswith("min_") else ""
 
 
+def nonfinite_grads(model, show: int = 3) -> str:
+    """" (non-finite gradients in NAME, ... (k of n parameters))" for an error message, or "" (read on the error
+    path only: one host sync per parameter)."""
+    named = [(n, p.grad) for n, p in model.named_parameters() if p.grad is not None]
+    bad = [n for n, g in named if not bool(torch.isfinite(g).all())]
+    if not bad:
+        return ""
+    return f" (non-finite gradients in {', '.join(bad[:show])}{', ...' if len(bad) > show else ''}: {len(bad)} of " \
+        f"{len(named)} parameters)"
+
+
 def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list[Any],
                    loss_fn: Callable[[Any], tuple[torch.Tensor, dict[str, float]]],
                    max_grad_norm: float, step: int, weights: list[float] | None = None) -> dict[str, float]:
@@ -282,8 +293,10 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
     if max_grad_norm > 0:
         grad_norm = float(accelerator.clip_grad_norm_(model.parameters(), max_grad_norm))
         if not math.isfinite(grad_norm):
+            where = nonfinite_grads(model)
             optimizer.zero_grad(set_to_none=True)
-            raise TrainingError(f"non-finite gradient norm at step {step}; stopping. The last good checkpoint is intact.")
+            raise TrainingError(f"non-finite gradient norm at step {step}{where}; stopping. The last good checkpoint "
+                                "is intact.")
     optimizer.step()
     scheduler.step()
     optimizer.zero_grad(set_to_none=True)
@@ -489,6 +502,25 @@ def _set_rng_state(state: dict[str, Any]) -> None:
     random.setstate(state["python"])
     np.random.set_state(state["numpy"])
     torch.set_rng_state(state["torch"])
+
+
+def full_state_dict(accelerator, model) -> dict | None:
+    """The whole weights of a sharded model, for `models.save_model(..., state_dict=)`, or None when the model's
+    parameters are whole tensors already (DDP, one process: save them as they are). Call it on EVERY process (the
+    gather is collective); the main process gets the tensors, on the CPU. FSDP2 (DTensor parameters): torch's
+    `get_model_state_dict(full_state_dict=True, cpu_offload=True)`; FSDP1 / DeepSpeed ZeRO-3:
+    `accelerator.get_state_dict`. `save_pretrained` on FSDP2 parameters fails ("Attempted to access the data
+    pointer on an invalid python storage", torch 2.13, seen on the CPU with gloo)."""
+    from posttrain.lean.support import sharded_problem
+
+    inner = accelerator.unwrap_model(model) if accelerator is not None else model
+    if sharded_problem(inner) is None:
+        return None
+    if any(type(p).__name__ == "DTensor" for p in inner.parameters()):
+        from torch.distributed.checkpoint.state_dict import StateDictOptions, get_model_state_dict
+
+        return get_model_state_dict(inner, options=StateDictOptions(full_state_dict=True, cpu_offload=True))
+    return accelerator.get_state_dict(model)
 
 
 class Checkpointer:

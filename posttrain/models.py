@@ -253,11 +253,16 @@ class reference_view(torch.nn.Module):
         return self.inner.get_base_model()
 
 
-def save_model(model, tokenizer, out_dir: str | os.PathLike) -> Path:
+def save_model(model, tokenizer, out_dir: str | os.PathLike, state_dict: dict | None = None) -> Path:
     """Save model + tokenizer as a Hugging Face directory, atomically (write to a temp dir, then rename).
 
     A LoRA-wrapped model is saved merged (base + adapters) as a plain Hugging Face model; the model
-    passed in keeps its adapters (the merge is made on a copy of the weights)."""
+    passed in keeps its adapters (the merge is made on a copy of the weights). `state_dict`: the full weights
+    to write instead of the model's own parameters, for a sharded model (FSDP / ZeRO-3), whose parameters hold only
+    a shard (`loop.full_state_dict` gathers them)."""
+    if state_dict is not None and is_lora(model):
+        raise NotImplementedError("save_model: a sharded (FSDP / ZeRO-3) LoRA model cannot be saved merged yet; "
+                                  "train LoRA without sharding (its weights are small) or full weights under FSDP")
     if is_lora(model):
         import copy
 
@@ -269,7 +274,8 @@ def save_model(model, tokenizer, out_dir: str | os.PathLike) -> Path:
 
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    model.save_pretrained(str(tmp), safe_serialization=True)
+    model.save_pretrained(str(tmp), safe_serialization=True,
+                          **({"state_dict": state_dict} if state_dict is not None else {}))
     tokenizer.save_pretrained(str(tmp))
     if out.exists():
         import shutil

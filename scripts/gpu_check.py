@@ -1,4 +1,4 @@
-"""The GPU path, checked in one short run: on a CUDA machine (~5 minutes, `--budget-s`) the rollout engine against
+"""The GPU path, checked in one short run: on a CUDA machine (~7 minutes, `--budget-s`) the rollout engine against
 `model.generate` (with its default cache and with the static cache that transformers compiles), one or two steps of
 every stage through the CLI in bf16 (sft, rm, dpo, dpo loss_type=kto, ppo, grpo, distill, sft and dpo with LoRA,
 sft with fp32 weights under bf16 autocast) and one SFT step under accelerate's FSDP2 config (recipes/launch/fsdp.yaml)
@@ -20,12 +20,14 @@ Rows
   sample_lp - trainer_lp, is reported).
 - `static-cache generate DTYPE B=N`: `model.generate(cache_implementation="static")` (transformers compiles the
   decode step): one warm-up call (compilation; its seconds reported, not timed), then one timed call; tokens/s and
-  engine / static. Compiling costs tens of seconds per shape, so these run last, batch 16 first, while the engine
-  section's time budget (`--engine-budget-s`) lasts; the rest say "skipped: engine time budget".
+  engine / static. Compiling costs ~60 s per shape (H200, 2026-12-04), so the bf16 ones run right after the engine
+  cell of their batch and the fp32 ones last, while the engine section's time budget (`--engine-budget-s`, 300 s
+  on CUDA) lasts; the rest say "skipped: engine time budget".
 - `greedy agreement DTYPE B=16`: engine vs `model.generate`, greedy, 128 new tokens, the same left-padded prompts:
-  rows identical token for token (k/16), first tokens equal, mean common prefix. With random weights the top two
-  logits are often close, so bf16 rounding flips later tokens: fp32 passes at >= 15/16 rows, bf16 at >= 12/16 first
-  tokens.
+  rows identical token for token (k/16), first tokens equal, mean common prefix, and for the rows that part, the
+  reference's top-1 minus top-2 logit where they part. With random weights the top two logits are often close, so
+  bf16 rounding flips later tokens: fp32 passes at >= 15/16 identical rows, bf16 when every row is identical up to
+  its first near-tie (a margin below GREEDY_TIE = 0.5 logits).
 - one row per stage: a CLI subprocess (`posttrain STAGE --recipe ...`, 1-2 steps, no evals); a stage that needs
   an earlier one (dpo: sft and prefs; ppo: sft, prefs, rm; distill: a grpo teacher) builds it through the CLI's
   own chaining in the same run directory, with 1 step (dotted overrides such as sft.max_steps=1). Independent
@@ -39,7 +41,7 @@ column shows the process's peak RSS instead.
 
 Order: the stage rows first (the correctness checks), then the engine section with the time left, in a child
 process of this script (a hung compilation is killed 60 s past its budget). The whole run keeps to `--budget-s`
-(default 300 s on CUDA; `scripts/gpu_run.sh` runs it under `timeout 330`, and a SIGTERM still prints the table),
+(default 450 s on CUDA; `scripts/gpu_run.sh` runs it under `timeout 480`, and a SIGTERM still prints the table),
 and rows it had no time for say so (FAILED). Exit status 0 only when every row is ok or skipped.
 
 Needs only torch, transformers, accelerate and peft beside this project (no vLLM, no DeepSpeed). The GPU
@@ -52,6 +54,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -95,12 +98,21 @@ def build_model(out: Path, dry: bool) -> Path:
 
 # ============================================================================ engine section (a child process)
 def engine_plan(dtypes: list[str], batches: list[int], cuda: bool) -> list[tuple[str, str, int]]:
-    """(kind, dtype, batch) in the order they run: sampling cells and greedy checks, then the static-cache cells
-    (expensive: one compilation per shape), batch 16 of each dtype first."""
+    """(kind, dtype, batch) in the order they run: the greedy checks, then per batch the first dtype's (bf16 on
+    CUDA) sampling cell and its static-cache cell (the comparison that matters: one compilation each, ~60 s),
+    the other dtypes' sampling cells, and last the other dtypes' static-cache cells."""
+    first, rest = dtypes[0], dtypes[1:]
     plan = [("greedy", dt, 16) for dt in dtypes]
-    plan += [("sample", dt, b) for b in batches for dt in dtypes]
-    plan += [("static", dt, b) for b in batches for dt in dtypes]
+    for b in batches:
+        plan += [("sample", first, b), ("static", first, b)] + [("sample", dt, b) for dt in rest]
+    plan += [("static", dt, b) for dt in rest for b in batches]
     return plan
+
+
+# Greedy rows in half precision may part from model.generate only where its top-1 and top-2 logits are this close:
+# bf16 logits of a 30-layer model differ from another bf16 forward's by ~0.03 of their scale (lean vs HF, measured
+# in tests/posttrain/rollout/test_half_precision.py), a few tenths of a logit at SmolLM2's scale.
+GREEDY_TIE = 0.5
 
 
 def engine_row_name(kind: str, dt: str, b: int) -> str:
@@ -169,8 +181,10 @@ class EngineSection:
 
         return {"peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
 
-    def hf_generate(self, model, b: int, *, greedy: bool, static: bool = False) -> list[list[int]]:
-        """`model.generate` on the first b prompts, left-padded; the new tokens of each row."""
+    def hf_generate(self, model, b: int, *, greedy: bool, static: bool = False, margins: list | None = None
+                    ) -> list[list[int]]:
+        """`model.generate` on the first b prompts, left-padded; the new tokens of each row. `margins` (greedy): filled
+        with each row's top-1 minus top-2 logit at every step, (b, steps)."""
         x, am = _left_pad(self.tok, self.ids[:b])
         kw = dict(max_new_tokens=NEW_TOKENS, pad_token_id=self.tok.pad_token_id, eos_token_id=self.tok.eos_token_id)
         if greedy:
@@ -179,8 +193,14 @@ class EngineSection:
             kw.update(do_sample=True, temperature=1.0, top_k=0, top_p=1.0, min_new_tokens=NEW_TOKENS)
         if static:
             kw["cache_implementation"] = "static"
+        if margins is not None:
+            kw.update(output_scores=True, return_dict_in_generate=True)
         with self.torch.no_grad():
             out = model.generate(x.to(self.device), attention_mask=am.to(self.device), **kw)
+        if margins is not None:
+            top2 = self.torch.stack([s.float().topk(2, -1).values for s in out.scores], 1)  # (b, steps, 2)
+            margins.extend((top2[..., 0] - top2[..., 1]).tolist())
+            out = out.sequences
         return out[:, x.shape[1]:].tolist()
 
     def engine(self, model, b: int, *, greedy: bool, seed: int = 0):
@@ -245,11 +265,13 @@ class EngineSection:
         model = self.model(dt)
         self.reset_peak()
         ours = self.engine(model, b, greedy=True)
-        ref = self.hf_generate(model, b, greedy=True)
+        margins: list = []
+        ref = self.hf_generate(model, b, greedy=True, margins=margins)
         row: dict = {"status": "ok", **self.peak()}
         eos = self.tok.eos_token_id
-        same = first = prefix = 0
-        for o, r in zip(ours, ref):
+        same = first = prefix = at_tie = 0
+        worst = 0.0  # the largest reference margin at which a row parted from model.generate
+        for o, r, m in zip(ours, ref, margins):
             r = r[:r.index(eos) + 1] if eos in r else r
             same += o.completion_ids == r
             first += bool(o.completion_ids) and bool(r) and o.completion_ids[0] == r[0]
@@ -257,12 +279,17 @@ class EngineSection:
             while k < min(len(o.completion_ids), len(r)) and o.completion_ids[k] == r[k]:
                 k += 1
             prefix += k
-        row.update({"greedy agreement": f"{same}/{b} rows", "first tokens": f"{first}/{b}",
+            if o.completion_ids != r and k < len(m):
+                worst = max(worst, m[k])
+                at_tie += m[k] < GREEDY_TIE
+        row.update({"greedy agreement": f"{same}/{b} rows", "parted at a near-tie": f"{at_tie}/{b - same}",
+                    "largest margin where rows parted": round(worst, 3), "first tokens": f"{first}/{b}",
                     "mean common prefix": round(prefix / b, 1)})
         if dt == "float32" and same < b - 1:
             row["status"] = f"FAILED: greedy agreement {same}/{b} rows (fp32 needs >= {b - 1})"
-        elif dt != "float32" and first < b * 3 // 4:
-            row["status"] = f"FAILED: first greedy tokens agree on {first}/{b} rows ({dt} needs >= {b * 3 // 4})"
+        elif dt != "float32" and same + at_tie < b:
+            row["status"] = (f"FAILED: {b - same - at_tie} row(s) parted from model.generate where its top-2 margin "
+                             f"was >= {GREEDY_TIE} (not a {dt} rounding tie)")
         return row
 
     def run(self, emit) -> None:
@@ -343,7 +370,7 @@ def stage_settings(stage: str, steps: int) -> list[str]:
     return {
         "sft": [f"max_steps={steps}", "batch_size=8", "eval_every=0", "final_eval_rows=0", "save_every=0",
                 "warmup_steps=0", "log_every=1"],
-        "prefs": ["n_prompts=16", "n_eval_prompts=4", "samples_per_prompt=2", "max_new_tokens=16"],
+        "prefs": ["n_prompts=16", "n_eval_prompts=8", "samples_per_prompt=2", "max_new_tokens=16"],
         "rm": [f"max_steps={steps}", "batch_size=4", "eval_every=0", "save_every=0", "warmup_steps=0", "log_every=1"],
         "dpo": [f"max_steps={steps}", "batch_size=4", "online=false", "proxy_rm=none", "eval_every=0", "eval_rows=0",
                 "final_eval_rows=0", "save_every=0", "warmup_steps=0", "log_every=1"],
@@ -424,13 +451,20 @@ class Runner:
             self._kill(p)
 
 
+_ERROR_LINE = re.compile(r"^(posttrain: |[\w.]*(Error|Exception|Interrupt)\b)")
+
+
 def _last_line(path: Path) -> str:
+    """The line that says what went wrong: the last error line (`posttrain: ...`, `SomeError: ...`) of the output,
+    else its last line that is not a rule of '=' / '-' (torchrun ends a failure with its own banner)."""
     try:
         text = path.read_text(errors="replace")
     except OSError:
         return ""
     lines = [l.strip() for l in text.replace("\r", "\n").splitlines() if l.strip()]
-    return lines[-1] if lines else ""
+    errors = [l for l in lines if _ERROR_LINE.match(l)]
+    plain = [l for l in lines if l.strip("=-_ ")]
+    return errors[-1] if errors else plain[-1] if plain else ""
 
 
 def stage_command(sid: str, model_dir: Path, out: Path, dtype: str, threads: int, launch: list[str]) -> list[str]:
@@ -563,8 +597,8 @@ def main(argv: list[str] | None = None) -> int:
     batches = [16] if args.quick or not cuda else [16, 64, 256]
     threads = 2 if cuda else 1
     jobs = args.jobs or (6 if cuda else 2)
-    budget = args.budget_s or (300.0 if cuda else 900.0)
-    engine_budget = args.engine_budget_s or (150.0 if cuda else 120.0)
+    budget = args.budget_s or (450.0 if cuda else 900.0)
+    engine_budget = args.engine_budget_s or (300.0 if cuda else 120.0)
     stage_ids = list(STAGE_ROWS) if not args.stages else [s.strip() for s in args.stages.split(",") if s.strip()]
     unknown = [s for s in stage_ids if s not in STAGE_ROWS]
     if unknown:

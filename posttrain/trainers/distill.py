@@ -408,8 +408,9 @@ def train(res: Resolved, ensure) -> Path:
                 ckpt.save(done, model, optimizer, scheduler, {"step": done})
 
         final = run_dir / "final"
+        whole = loop.full_state_dict(accelerator, model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
         if main:
-            save_model(student, tokenizer, final)
+            save_model(student, tokenizer, final, state_dict=whole)
             say(f"[distill] saved {final}")
             report = held.compare(student, tokenizer, baseline, metrics, cfg.max_steps, say) if held is not None else {}
             if teacher_eval:

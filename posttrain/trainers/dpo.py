@@ -460,8 +460,9 @@ def train(res: Resolved, ensure) -> Path:
                       {"online_pool": asdict(pool)} if pool.gen > 0 else None)
 
     final = run_dir / "final"
+    whole = loop.full_state_dict(accelerator, model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
     if main:
-        models.save_model(policy, tokenizer, final)
+        models.save_model(policy, tokenizer, final, state_dict=whole)
         say(f"[dpo] saved {final}")
         report: dict[str, Any] = {"model": str(final), "reference": str(sft_dir)}
         note = evaluation.plot_gold_vs_proxy(list(loop.iter_jsonl(metrics.path)) if metrics.path.is_file() else [],

@@ -741,8 +741,9 @@ def train(res: Resolved, ensure) -> Path:
                           {"curriculum": {"rates": curriculum.rates.tolist(), "seen": curriculum.seen.tolist()}})
 
         final = run_dir / "final"
+        whole = loop.full_state_dict(accelerator, model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
         if main:
-            save_model(policy, tokenizer, final)
+            save_model(policy, tokenizer, final, state_dict=whole)
             say(f"[grpo] saved {final}")
             report = held.compare(policy, tokenizer, baseline, metrics, cfg.max_steps, say)
             loop.write_json(run_dir / "eval.json", {"model": str(final), "sft": str(sft_dir), **report})

@@ -608,9 +608,10 @@ def train(res: Resolved, ensure) -> Path:
 
     # ---- final/ (the policy, a HF directory), the over-optimisation plot, the comparison with the SFT model
     final = run_dir / "final"
+    whole = loop.full_state_dict(accelerator, m.policy)  # every process: gathers a sharded model (FSDP, ZeRO-3)
     if main:
         pol = accelerator.unwrap_model(m.policy).eval()
-        models.save_model(pol, m.tokenizer, final)
+        models.save_model(pol, m.tokenizer, final, state_dict=whole)
         say(f"[ppo] saved {final}")
         report: dict[str, Any] = {"model": str(final), "reference": str(sft_dir), "reward": cfg.reward,
                                   "reward_model": str(rm_dir) if rm_dir else None, "reward_norm": norm}

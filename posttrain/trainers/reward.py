@@ -179,8 +179,9 @@ def train(res: Resolved, ensure) -> Path:
             ckpt.save(done, model, optimizer, scheduler, {"step": done})
 
     final = run_dir / "final"
+    whole = loop.full_state_dict(accelerator, model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
     if main:
-        save_model(accelerator.unwrap_model(model), tokenizer, final)
+        save_model(accelerator.unwrap_model(model), tokenizer, final, state_dict=whole)
         ev = heldout_metrics(model, eval_pairs, pad_id, micro, budget) if start == cfg.max_steps else ev  # resumed at the end
         loop.write_json(run_dir / "eval.json", {"model": str(final), "heldout": ev, "train_pairs": len(train_pairs),
                                                "seconds": round(time.time() - t0, 1)})

@@ -186,8 +186,9 @@ def train(res: Resolved, ensure) -> Path:
             ckpt.save(done, model, optimizer, scheduler, {"step": done})
 
     final = run_dir / "final"
+    whole = loop.full_state_dict(accelerator, model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
     if accelerator.is_main_process:
-        save_model(accelerator.unwrap_model(model), tokenizer, final)
+        save_model(accelerator.unwrap_model(model), tokenizer, final, state_dict=whole)
         say(f"[sft] saved {final}")
         if cfg.final_eval_rows:
             rows = eval_rows[: cfg.final_eval_rows]

@@ -463,3 +463,14 @@ def test_several_processes_adopt_process_zeros_bf16_probe(monkeypatch):
     monkeypatch.setattr(runtime, "cpu_flags", lambda: {"avx2", "avx512f", "avx512_bf16"})
     monkeypatch.setattr(runtime.torch.cuda, "is_available", lambda: True)  # a GPU decides by its capability
     untouched()
+
+
+def test_nonfinite_grads_names_the_parameters_whose_gradient_is_not_finite():
+    from posttrain.loop import nonfinite_grads
+
+    model = torch.nn.Sequential(torch.nn.Linear(3, 3), torch.nn.Linear(3, 1))
+    model(torch.ones(2, 3)).sum().backward()
+    assert nonfinite_grads(model) == ""
+    model[1].weight.grad[0, 1] = float("nan")
+    model[0].bias.grad[2] = float("inf")
+    assert nonfinite_grads(model) == " (non-finite gradients in 0.bias, 1.weight: 2 of 4 parameters)"

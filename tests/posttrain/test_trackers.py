@@ -132,7 +132,9 @@ def tracked_sft(tmp_path_factory):
     path = os.pathsep.join([str(REPO)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])
     env = {**os.environ, "HOME": str(root / "home"), "WANDB_MODE": "offline", "WANDB_CACHE_DIR": str(root / "wandb-cache"),
            "WANDB_CONFIG_DIR": str(root / "wandb-config"), "TRACKIO_DIR": str(root / "trackio"),
-           "MLFLOW_DISABLE_TELEMETRY": "true", "HF_HUB_OFFLINE": "1", "PYTHONPATH": path}
+           "MLFLOW_DISABLE_TELEMETRY": "true", "HF_HUB_OFFLINE": "1", "PYTHONPATH": path,
+           # the CUDA driver keeps a JIT cache in ~/.nv for every CUDA process (seen on an H200): not the run's doing
+           "CUDA_CACHE_DISABLE": "1"}
     env.pop("MLFLOW_TRACKING_URI", None)
     (root / "home").mkdir()
     cmd = [sys.executable, "-m", "posttrain", "sft", "--recipe", "tiny-summarize", "max_steps=6", "log_every=2",

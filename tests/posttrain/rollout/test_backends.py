@@ -307,7 +307,7 @@ def test_grpo_with_the_vllm_backend_pushes_every_step_and_recomputes_pi_old(tiny
     from safetensors.torch import load_file
 
     final = load_file(out / "tiny-countdown" / "grpo" / "final" / "model.safetensors")
-    assert all(torch.equal(llm.pushes[-1][k], v) for k, v in final.items())  # vLLM ends with the trained policy
+    assert all(torch.equal(llm.pushes[-1][k].cpu(), v) for k, v in final.items())  # vLLM ends with the trained policy
     steps = [json.loads(l) for l in (out / "tiny-countdown" / "grpo" / "metrics.jsonl").read_text().splitlines()
              if "reward/mean" in l]
     assert len(steps) == 2
