@@ -141,3 +141,30 @@ def test_stage_runs_with_its_model_on_another_device(stage, variant, out, monkey
         rc = main(stage_argv(stage, out, variant))
     assert rc == 0
     assert g.syncs > 0  # the guard saw the run's tensors (a guard that sees nothing passes anything)
+
+
+# ------------------------------------------------------------------ host syncs in the decode loop
+def _decode_syncs(model, tok, new_tokens: int, every: int, monkeypatch) -> tuple[int, dict]:
+    from posttrain.rollout import engine, generate
+
+    monkeypatch.setattr(engine, "STATIC_DECODE", True)  # the CUDA loop: static step, no compaction
+    monkeypatch.setattr(engine, "EOS_CHECK_EVERY", every)
+    with guard.VirtualDevice() as g:
+        on_device = model.to(guard.DEVICE)
+        generate(on_device, tok, ["a b c", "d e f g h"], max_new_tokens=new_tokens, temperature=1.0)
+    return g.syncs, dict(g.sync_sites)
+
+
+def test_the_cuda_decode_loop_reads_the_device_once_per_eos_window(tiny_lm, monkeypatch):
+    """The engine's loop on CUDA (static step, EOS checked every 16 steps) must not sync with the host every step:
+    32 more sampled tokens cost at most 32 / 16 more device reads (plus one), where a per-step check costs 32."""
+    from posttrain.models import load_model, load_tokenizer
+
+    path = tiny_lm("tiny-summarize", max_length=256)
+    model, tok = load_model(path), load_tokenizer(path)
+    short, _ = _decode_syncs(model, tok, 32, 16, monkeypatch)
+    long, sites = _decode_syncs(model, tok, 64, 16, monkeypatch)
+    assert long - short <= 32 // 16 + 1, sites
+    per_step_short, _ = _decode_syncs(model, tok, 32, 1, monkeypatch)
+    per_step_long, _ = _decode_syncs(model, tok, 64, 1, monkeypatch)
+    assert per_step_long - per_step_short >= 32  # the guard sees a per-step check: the bound above means something
