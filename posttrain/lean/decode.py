@@ -559,11 +559,7 @@ class LeanLlama:
             acc(x, a.reshape(B, HD), o_w)  # residual += attn @ Wo, in place
             if o_b is not None:
                 x = x + o_b
-            gu = lin(nrm(x, c2), gu_w, gu_b)  # (B, 2I)
-            g, u = gu.split_with_sizes((inter, inter), 1)
-            acc(x, F.silu(g).mul_(u), down_w)
-            if down_b is not None:
-                x = x + down_b
+            x = self._mlp(x, layer)  # x + mlp(norm(x)), down_proj accumulated in place
         return self._logits(x)  # (B, V)
 
     def select(self, order: list[int], col: int) -> None:
@@ -607,11 +603,7 @@ class LeanLlama:
             acc(x, a.reshape(B, HD), o_w)  # residual += attn @ Wo, in place
             if o_b is not None:
                 x = x + o_b
-            gu = lin(nrm(x, c2), gu_w, gu_b)  # (B, 2I)
-            g, u = gu.split_with_sizes((inter, inter), 1)
-            acc(x, F.silu(g).mul_(u), down_w)
-            if down_b is not None:
-                x = x + down_b
+            x = self._mlp(x, layer)  # x + mlp(norm(x)), down_proj accumulated in place
         return self._logits(x.view(B, d)).float()  # (B, V) fp32 for the sampler
 
     def step(self) -> torch.Tensor:

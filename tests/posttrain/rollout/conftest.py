@@ -1,7 +1,10 @@
 """Fixtures of the rollout tests that compare decoding paths (test_half_precision.py, test_static_decode.py).
 
 - `trained_lm` (module scope): (model, tokenizer, prompts): the tiny preset trained for a few seconds on templated
-  sentences until its greedy text is varied (healthy top-2 margins, EOS emitted), as test_rollout.py's `trained`.
+  sentences until its greedy text is varied (healthy top-2 margins, EOS emitted); test_rollout.py's `trained`.
+- `small_llama(kind, device="cpu", dtype=torch.float32)`: a 2-layer random model: Llama with GQA ("llama-gqa"), with
+  linear-scaled RoPE too ("llama-gqa-scaled-rope"), Mistral ("mistral") or Qwen2 with q/k/v biases ("qwen2"), weights
+  scaled up for larger activations than the init, in eval mode.
 """
 from __future__ import annotations
 
@@ -49,3 +52,32 @@ def trained_lm():
         raise AssertionError("the fixture model's greedy text stayed degenerate after 600 steps")
     model.eval()
     return model, tok, prompts
+
+
+def _small_llama(kind: str, device: str = "cpu", dtype: torch.dtype = torch.float32):
+    from transformers import LlamaConfig, LlamaForCausalLM, MistralConfig, MistralForCausalLM, Qwen2Config, \
+        Qwen2ForCausalLM
+
+    common = dict(vocab_size=97, hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
+                  max_position_embeddings=128, pad_token_id=0, eos_token_id=1, bos_token_id=2)
+    if kind == "llama-gqa":
+        cfg, cls = LlamaConfig(num_key_value_heads=2, **common), LlamaForCausalLM
+    elif kind == "llama-gqa-scaled-rope":
+        cfg = LlamaConfig(num_key_value_heads=2, rope_parameters={"rope_type": "linear", "factor": 2.0,
+                                                                 "rope_theta": 500.0}, **common)
+        cls = LlamaForCausalLM
+    elif kind == "mistral":
+        cfg, cls = MistralConfig(num_key_value_heads=2, sliding_window=None, **common), MistralForCausalLM
+    else:  # qwen2: q/k/v biases
+        cfg, cls = Qwen2Config(num_key_value_heads=4, **common), Qwen2ForCausalLM
+    torch.manual_seed(0)
+    model = cls(cfg).eval()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.mul_(10.0 if p.dim() == 1 and p.numel() != 64 else 3.0)  # larger activations than the init
+    return model.to(device, dtype)
+
+
+@pytest.fixture
+def small_llama():
+    return _small_llama

@@ -19,23 +19,6 @@ pytestmark = pytest.mark.usefixtures("one_thread")  # correctness tests (tests/c
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")  # (besides `cuda`)
 
 
-def _tiny(kind: str, dtype: torch.dtype = torch.float32):
-    from transformers import LlamaConfig, LlamaForCausalLM, Qwen2Config, Qwen2ForCausalLM
-
-    common = dict(vocab_size=97, hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
-                  max_position_embeddings=128, pad_token_id=0, eos_token_id=1, bos_token_id=2)
-    if kind == "llama-gqa":
-        cfg, cls = LlamaConfig(num_key_value_heads=2, **common), LlamaForCausalLM
-    else:  # qwen2: q/k/v biases
-        cfg, cls = Qwen2Config(num_key_value_heads=4, **common), Qwen2ForCausalLM
-    torch.manual_seed(0)
-    model = cls(cfg).eval()
-    with torch.no_grad():
-        for p in model.parameters():
-            p.mul_(10.0 if p.dim() == 1 and p.numel() != 64 else 3.0)  # larger activations than the init
-    return model.to(dtype)
-
-
 def _batch(V: int, steps: int):
     g = torch.Generator().manual_seed(1)
     seqs = [torch.randint(3, V, (n,), generator=g).tolist() for n in (5, 11, 8)]
@@ -78,22 +61,22 @@ def _hf_and_lean(model, steps: int = 3, static: bool = False):
     return ref, torch.stack(out, 1)
 
 
-def test_lean_support_accepts_half_weights_and_refuses_other_dtypes():
+def test_lean_support_accepts_half_weights_and_refuses_other_dtypes(small_llama):
     for dt in (torch.bfloat16, torch.float16):
-        ok, why = lean_support(_tiny("llama-gqa", dt), 64, mode="decode")
+        ok, why = lean_support(small_llama("llama-gqa", dtype=dt), 64, mode="decode")
         assert ok and str(dt).removeprefix("torch.") in why, why
-        assert not lean_support(_tiny("llama-gqa", dt), 64, mode="train")[0]  # train mode unchanged: fp32 only
-    ok, why = lean_support(_tiny("llama-gqa", torch.float64), 64, mode="decode")
+        assert not lean_support(small_llama("llama-gqa", dtype=dt), 64, mode="train")[0]  # train mode unchanged: fp32 only
+    ok, why = lean_support(small_llama("llama-gqa", dtype=torch.float64), 64, mode="decode")
     assert not ok and why == "dtype torch.float64 (the lean decoder runs fp32, bf16 or fp16 weights)"
 
 
 @pytest.mark.parametrize("static", [False, True], ids=["decode", "static-step"])
 @pytest.mark.parametrize("dt", [torch.bfloat16, torch.float16], ids=["bf16", "fp16"])
 @pytest.mark.parametrize("kind", ["llama-gqa", "qwen2"])
-def test_half_lean_logits_match_the_hf_forward_in_the_same_dtype(kind, dt, static):
+def test_half_lean_logits_match_the_hf_forward_in_the_same_dtype(kind, dt, static, small_llama):
     """Prefill and 3 decode steps: lean in bf16 (fp16) vs HF in bf16 (fp16), both measured against the fp32 HF
     forward. Two half computations round differently; the lean one must be as close to fp32 as HF's is."""
-    fp32 = _tiny(kind)
+    fp32 = small_llama(kind)
     ref32, _ = _hf_and_lean(fp32)
     ref, got = _hf_and_lean(copy.deepcopy(fp32).to(dt), static=static)
     lean = LeanLlama(copy.deepcopy(fp32).to(dt))
@@ -111,8 +94,8 @@ def test_half_lean_logits_match_the_hf_forward_in_the_same_dtype(kind, dt, stati
     assert (got.argmax(-1) == ref.argmax(-1)).float().mean() >= 0.9
 
 
-def test_half_static_step_equals_half_decode():
-    model = _tiny("llama-gqa", torch.bfloat16)
+def test_half_static_step_equals_half_decode(small_llama):
+    model = small_llama("llama-gqa", dtype=torch.bfloat16)
     _, a = _hf_and_lean(model)
     _, b = _hf_and_lean(model, static=True)
     torch.testing.assert_close(b, a, atol=2.0 ** -7 * float(a.abs().max()), rtol=0)

@@ -3,7 +3,6 @@ top-k / top-p, errors, save / load."""
 from __future__ import annotations
 
 import json
-import random
 
 import pytest
 import torch
@@ -27,45 +26,10 @@ from posttrain.rollout.sampling import Sampler
 pytestmark = pytest.mark.usefixtures("one_thread")  # correctness tests (tests/conftest.py)
 
 
-NAMES = "anna bob carl dora eve finn gus hana ivan jade".split()
-COLORS = "red blue green pink gold gray".split()
-THINGS = "cats dogs boats kites lamps maps".split()
-
-
-def _sentence(rng: random.Random) -> str:
-    return (f"{rng.choice(NAMES)} likes {rng.choice(COLORS)} {rng.choice(THINGS)} and "
-            f"{rng.choice(NAMES)} has {rng.randint(2, 99)} {rng.choice(THINGS)}.")
-
-
 @pytest.fixture(scope="module")
-def trained():
-    """A tiny model trained for a few seconds on templated sentences: varied greedy text, healthy margins."""
-    rng = random.Random(0)
-    corpus = [" ".join(_sentence(rng) for _ in range(3)) for _ in range(200)]
-    tok = train_tokenizer(corpus, vocab_size=256)
-    model = build_model("tiny", tok, seed=0)
-    data = torch.tensor([(tok(c)["input_ids"] + [tok.eos_token_id])[:40] for c in corpus])
-    opt = torch.optim.AdamW(model.parameters(), lr=1e-2)
-    g = torch.Generator().manual_seed(0)
-    prompts = [_sentence(rng)[: rng.randint(4, 30)] for _ in range(6)]
-    # Train until the greedy text is varied (most prompts' completions use > 3 distinct tokens), not for a fixed
-    # number of steps: how soon a 60-step run leaves its "a a a" phase differs between CPUs (Zen 3 vs Zen 4).
-    for step in range(1, 601):
-        model.train()
-        batch = data[torch.randint(0, len(data), (16,), generator=g)]
-        loss = model(input_ids=batch, labels=batch).loss
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        if step >= 60 and step % 20 == 0:
-            model.eval()
-            out = generate(model, tok, prompts, greedy=True, max_new_tokens=24)
-            if sum(len(set(r.completion_ids)) > 3 for r in out) >= 4:
-                break
-    else:
-        raise AssertionError("the fixture model's greedy text stayed degenerate after 600 steps")
-    model.eval()
-    return model, tok, prompts
+def trained(trained_lm):
+    """A tiny model trained for a few seconds on templated sentences (conftest.py's `trained_lm`)."""
+    return trained_lm
 
 
 def _left_pad(seqs):
@@ -81,36 +45,14 @@ def _left_pad(seqs):
 # ------------------------------------------------------------------ lean path == HF forward
 
 
-def _tiny_config_model(kind: str):
-    from transformers import LlamaConfig, LlamaForCausalLM, MistralConfig, MistralForCausalLM, Qwen2Config, \
-        Qwen2ForCausalLM
-
-    common = dict(vocab_size=97, hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
-                  max_position_embeddings=128, pad_token_id=0, eos_token_id=1, bos_token_id=2)
-    if kind == "llama-gqa-scaled-rope":
-        cfg = LlamaConfig(num_key_value_heads=2, rope_parameters={"rope_type": "linear", "factor": 2.0,
-                                                                 "rope_theta": 500.0}, **common)
-        cls = LlamaForCausalLM
-    elif kind == "mistral":
-        cfg, cls = MistralConfig(num_key_value_heads=2, sliding_window=None, **common), MistralForCausalLM
-    else:
-        cfg, cls = Qwen2Config(num_key_value_heads=4, **common), Qwen2ForCausalLM
-    torch.manual_seed(0)
-    model = cls(cfg).eval()
-    with torch.no_grad():
-        for p in model.parameters():
-            p.mul_(10.0 if p.dim() == 1 and p.numel() != 64 else 3.0)  # larger activations than the init
-    return model
-
-
 @pytest.mark.parametrize("packed", [True, False], ids=["packed", "plain"])
 @pytest.mark.parametrize("kind", ["tiny", "llama-gqa-scaled-rope", "mistral", "qwen2"])
-def test_lean_logits_match_hf_prefill_and_decode(kind, packed, trained, monkeypatch):
+def test_lean_logits_match_hf_prefill_and_decode(kind, packed, trained, monkeypatch, small_llama):
     from posttrain.lean import decode
 
     monkeypatch.setattr(decode, "PACK", packed)
     monkeypatch.setattr(decode, "PACK_MIN_HIDDEN", 0)  # the tiny configs are narrower than the default
-    model = trained[0] if kind == "tiny" else _tiny_config_model(kind)
+    model = trained[0] if kind == "tiny" else small_llama(kind)
     assert select_backend(model, 64)[0].name == "lean"
     V = model.config.vocab_size
     g = torch.Generator().manual_seed(1)
@@ -150,7 +92,7 @@ def test_models_narrower_than_pack_min_hidden_multiply_plain_wider_ones_packed()
 
 
 @pytest.mark.parametrize("wdt", [None, torch.bfloat16], ids=["fp32", "bf16"])
-def test_packed_weights_give_the_plain_matmuls_numbers(wdt, monkeypatch):
+def test_packed_weights_give_the_plain_matmuls_numbers(wdt, monkeypatch, small_llama):
     """Packed (oneDNN-layout) fused weights: the same logits as plain matmuls over the same weights (fp32 within
     fp32 rounding; bf16 weights: both round their matmul outputs to bf16), their dense form equals the plain
     matrices exactly, and `load` after an update repacks (the refreshed engine equals a fresh one)."""
@@ -159,7 +101,7 @@ def test_packed_weights_give_the_plain_matmuls_numbers(wdt, monkeypatch):
     if wdt is not None and not decode.pack_available(wdt):  # oneDNN without bf16 kernels on this CPU
         pytest.skip("no packed bf16 linear on this CPU")
     monkeypatch.setattr(decode, "PACK_MIN_HIDDEN", 0)
-    model = _tiny_config_model("qwen2")  # biases on q/k/v too
+    model = small_llama("qwen2")  # biases on q/k/v too
     V = model.config.vocab_size
     g = torch.Generator().manual_seed(3)
     ids, am = _left_pad([torch.randint(3, V, (n,), generator=g).tolist() for n in (4, 9, 7)])
@@ -261,8 +203,8 @@ def bf16_rollouts():
 
 
 @pytest.mark.parametrize("kind", ["tiny", "qwen2"])  # qwen2: q/k/v biases on the bf16 path
-def test_bf16_weights_logits_within_bf16_rounding(kind, trained):
-    model = trained[0] if kind == "tiny" else _tiny_config_model(kind)
+def test_bf16_weights_logits_within_bf16_rounding(kind, trained, small_llama):
+    model = trained[0] if kind == "tiny" else small_llama(kind)
     V = model.config.vocab_size
     g = torch.Generator().manual_seed(4)
     ids, am = _left_pad([torch.randint(3, V, (n,), generator=g).tolist() for n in (6, 13, 9)])

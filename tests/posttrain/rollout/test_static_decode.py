@@ -19,23 +19,6 @@ pytestmark = pytest.mark.usefixtures("one_thread")  # correctness tests (tests/c
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")  # (besides `cuda`)
 
 
-def _tiny(kind: str, device: str = "cpu", dtype: torch.dtype = torch.float32):
-    from transformers import LlamaConfig, LlamaForCausalLM, Qwen2Config, Qwen2ForCausalLM
-
-    common = dict(vocab_size=97, hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
-                  max_position_embeddings=128, pad_token_id=0, eos_token_id=1, bos_token_id=2)
-    if kind == "llama-gqa":
-        cfg, cls = LlamaConfig(num_key_value_heads=2, **common), LlamaForCausalLM
-    else:  # qwen2: q/k/v biases
-        cfg, cls = Qwen2Config(num_key_value_heads=4, **common), Qwen2ForCausalLM
-    torch.manual_seed(0)
-    model = cls(cfg).eval()
-    with torch.no_grad():
-        for p in model.parameters():
-            p.mul_(10.0 if p.dim() == 1 and p.numel() != 64 else 3.0)
-    return model.to(device, dtype)
-
-
 def _steps(lean: LeanLlama, static: bool, steps: int = 5):
     """Prefill 3 left-padded prompts (lengths 5, 11, 8), then `steps` decode steps -> logits (B, 1 + steps, V)."""
     dev = lean.device
@@ -72,10 +55,10 @@ def _steps(lean: LeanLlama, static: bool, steps: int = 5):
 
 @pytest.mark.parametrize("packed", [True, False], ids=["packed", "plain"])
 @pytest.mark.parametrize("kind", ["llama-gqa", "qwen2"])
-def test_static_step_equals_decode(kind, packed, monkeypatch):
+def test_static_step_equals_decode(kind, packed, monkeypatch, small_llama):
     monkeypatch.setattr(decode, "PACK", packed)
     monkeypatch.setattr(decode, "PACK_MIN_HIDDEN", 0)
-    lean = LeanLlama(_tiny(kind))
+    lean = LeanLlama(small_llama(kind))
     a, b = _steps(lean, static=False), _steps(lean, static=True)
     assert lean.cols % decode.STATIC_COLS == 0  # the static width is rounded up: masked, never-written columns
     torch.testing.assert_close(b, a, atol=1e-5 * float(a.abs().max()), rtol=0)
@@ -154,8 +137,8 @@ def test_eos_checked_every_k_steps_equals_every_step(trained_lm, monkeypatch, st
 @pytest.mark.cuda
 @needs_cuda
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16], ids=["fp32", "bf16"])
-def test_cuda_graph_replay_equals_eager_static_steps(dtype, monkeypatch):
-    model = _tiny("llama-gqa", "cuda", dtype)
+def test_cuda_graph_replay_equals_eager_static_steps(dtype, monkeypatch, small_llama):
+    model = small_llama("llama-gqa", "cuda", dtype)
     graphed = LeanLlama(model)
     a = _steps(graphed, static=True)
     st = next(iter(graphed._states.values()))
