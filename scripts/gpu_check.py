@@ -1,7 +1,7 @@
 """The GPU path, checked in one short run: on a CUDA machine (~7 minutes, `--budget-s`) the rollout engine against
 `model.generate` (with its default cache and with the static cache that transformers compiles), one or two steps of
 every stage through the CLI in bf16 (sft, rm, dpo, dpo loss_type=kto, ppo, grpo, distill, sft and dpo with LoRA,
-sft with fp32 weights under bf16 autocast) and one SFT step under accelerate's FSDP2 config (recipes/launch/fsdp.yaml)
+sft and ppo with fp32 weights under bf16 autocast) and one SFT step under accelerate's FSDP2 config (recipes/launch/fsdp.yaml)
 with one process; the peak GPU memory of each row; one table at the end.
 
     python scripts/gpu_check.py                     # CUDA: a SmolLM2-135M-shaped model (30 layers, d=576, GQA 9/3)
@@ -398,6 +398,10 @@ STAGE_ROWS: dict[str, tuple[str, str, str, str, tuple[str, ...], tuple[str, ...]
     "dpo-lora": ("dpo LoRA", SUMMARIZE, "dpo", "lora", ("lora.enabled=true",), ("sft", "prefs")),
     "sft-autocast": ("sft fp32 weights + bf16 autocast", SUMMARIZE, "sft", "autocast",
                      ("model.dtype=float32", "run.mixed_precision=bf16"), ()),
+    # PPO's bf16-weights row failed on an H200 (non-finite gradient at step 1, RESULTS.md): the same chain in fp32
+    # weights under autocast tells the weights' precision from the compute's
+    "ppo-autocast": ("ppo fp32 weights + bf16 autocast", SUMMARIZE, "ppo", "autocast-ppo",
+                     ("model.dtype=float32", "run.mixed_precision=bf16"), ("sft", "prefs", "rm")),
     "fsdp": ("sft FSDP2 1 process (fp32 weights, bf16)", SUMMARIZE, "sft", "fsdp", ("model.dtype=float32",), ()),
 }
 METRIC_KEYS = ("loss", "policy/loss", "reward/mean")  # the last value of each that a stage logs goes in its row
@@ -405,7 +409,7 @@ METRIC_KEYS = ("loss", "policy/loss", "reward/mean")  # the last value of each t
 
 def stage_row_name(sid: str, dtype: str) -> str:
     label = STAGE_ROWS[sid][0]
-    return label if sid in ("sft-autocast", "fsdp") else f"{label} ({DTYPE_NAMES.get(dtype, dtype)})"
+    return label if sid in ("sft-autocast", "ppo-autocast", "fsdp") else f"{label} ({DTYPE_NAMES.get(dtype, dtype)})"
 
 
 class Runner:
