@@ -266,17 +266,18 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
             loss, metrics = loss_fn(mb)
             if i >= real:  # a copy that only keeps this process in step with the others
                 loss, metrics = loss * 0.0, {}
-            finite = bool(torch.isfinite(loss))
+            value = float(loss.detach())  # the one read of the loss per micro-batch (a host sync on a GPU)
+            finite = math.isfinite(value)
             bad = 0.0 if finite else 1.0
             if accelerator.num_processes > 1:  # every process stops at the same micro-batch, none waits in backward
                 bad = global_sum(accelerator, bad)
             if bad:
                 optimizer.zero_grad(set_to_none=True)
-                where = f"({loss.item()})" if not finite else f"on {int(bad)} other process(es)"
+                where = f"({value})" if not finite else f"on {int(bad)} other process(es)"
                 raise TrainingError(f"non-finite loss {where} at step {step}; stopping. "
                                     "The last good checkpoint is intact: lower the learning rate and resume.")
             accelerator.backward(loss)
-        loss_total += loss.item()
+        loss_total += value
         w = 1.0 if weights is None else float(weights[i]) if i < real else 0.0
         for k, v in metrics.items():
             if metric_extreme(k) == "max":
