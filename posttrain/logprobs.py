@@ -14,7 +14,10 @@ position_ids = cumsum(attention_mask) - 1 (clamped at 0), the same as HF `genera
 engine use. Left-padded, right-padded and unpadded batches therefore give the same numbers per row.
 Passing no position_ids would be wrong for left padding: Llama-family models then count positions
 from column 0, padding included. Wrappers (accelerate/DDP, peft, torch.compile) work: we only read
-`.logits` from the output.
+`.logits` from the output. A left-padded batch gets a 4D mask in which every pad query sees itself
+(`models.hf_attention_mask`): no attention row is empty, as on the lean path; the real tokens' numbers are those of
+the 2D mask. (Fully masked rows are where fused attention kernels differ; PPO with bf16 weights on an H200 met a
+non-finite gradient that this may be, unverified: RESULTS.md, "The GPU path".)
 
 Lean path. For a plain fp32 Llama / Mistral / Qwen2 `*ForCausalLM` (not wrapped by DDP / peft /
 torch.compile, no gradient checkpointing, no dropout; fp32 or under bf16 autocast) `sequence_logprobs` runs
@@ -36,7 +39,7 @@ import torch
 from posttrain.data import row_spans, to_device, token_groups
 from posttrain.lean import train as lean
 from posttrain.lean.support import lean_support
-from posttrain.models import accepts, model_device, position_ids_from_mask, unwrap_model  # noqa: F401
+from posttrain.models import accepts, hf_attention_mask, model_device, position_ids_from_mask, unwrap_model  # noqa: F401
 
 # ------------------------------------------------------------------ log-probs
 
@@ -114,7 +117,8 @@ def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tens
     keep_kw = accepts(model, "logits_to_keep") and c > 1
     if keep_kw:
         kw["logits_to_keep"] = T - c + 1
-    logits = model(input_ids=input_ids, attention_mask=attention_mask, **kw).logits  # (B, T or T-c+1, V)
+    mask = hf_attention_mask(attention_mask, model)  # left padding: 4D, no empty attention row
+    logits = model(input_ids=input_ids, attention_mask=mask, **kw).logits  # (B, T or T-c+1, V)
     logits = logits[:, -(T - c + 1):-1]  # (B, T-c, V) predicts columns c .. T-1
     logp, ent = token_logprobs(logits.float(), input_ids[:, c:], temperature, return_entropy, entropy_grad)  # (B, T-c)
     return _place(logp, ent, completion_mask, c)
@@ -142,7 +146,8 @@ def completion_logits(model, input_ids: torch.Tensor, attention_mask: torch.Tens
         else {}
     if accepts(model, "logits_to_keep") and c > 1:
         kw["logits_to_keep"] = T - c + 1
-    logits = model(input_ids=input_ids, attention_mask=attention_mask, **kw).logits  # (B, T or T-c+1, V)
+    mask = hf_attention_mask(attention_mask, model)  # left padding: 4D, no empty attention row
+    logits = model(input_ids=input_ids, attention_mask=mask, **kw).logits  # (B, T or T-c+1, V)
     logits = logits[:, -(T - c + 1):-1].float()  # (B, T-c, V)
     return (logits if temperature == 1.0 else logits / temperature), c
 

@@ -362,6 +362,40 @@ def position_ids_from_mask(attention_mask: torch.Tensor) -> torch.Tensor:
     return (attention_mask.long().cumsum(-1) - 1).clamp_(min=0)
 
 
+def causal_padding_mask(valid: torch.Tensor) -> torch.Tensor:
+    """(B, T) real-token mask -> (B, 1, T, T) bool attention mask: key j visible to query i when j <= i and j is
+    real, and every query sees itself, so no attention row is empty. A left-padded row's leading pad queries would
+    otherwise see no key at all; fully masked attention rows are where attention kernels differ (NaN outputs or
+    gradients in some fused kernels). The lean forwards mask this way; a Hugging Face forward given it computes
+    the real tokens' numbers of the plain 2D mask exactly (tests/posttrain/test_logprobs.py)."""
+    T = valid.shape[1]
+    causal = torch.ones(T, T, dtype=torch.bool, device=valid.device).tril_()
+    return (causal & (valid.bool()[:, None, :] | torch.eye(T, dtype=torch.bool, device=valid.device)))[:, None]
+
+
+def plain_causal_attention(model) -> bool:
+    """Every layer of `model` attends causally over the whole sequence (no sliding windows, alternating layer
+    types or attention chunks), so one 4D mask describes them all."""
+    cfg = getattr(unwrap_model(model), "config", None)
+    if cfg is None:
+        return False
+    if getattr(cfg, "sliding_window", None) and getattr(cfg, "use_sliding_window", True) is not False:
+        return False
+    if any(t != "full_attention" for t in (getattr(cfg, "layer_types", None) or ())):
+        return False
+    return not getattr(cfg, "attention_chunk_size", None)
+
+
+def hf_attention_mask(attention_mask: torch.Tensor, model) -> torch.Tensor:
+    """The mask a Hugging Face forward of `model` gets for a (B, T) 0/1 padding mask: `causal_padding_mask` when a
+    row starts with padding (left padding: the rollout layout) and the model attends plainly causally
+    (`plain_causal_attention`: a 4D mask given to a sliding-window model would replace its windows), else the 2D
+    mask itself (which also keeps SDPA's causal fast paths). One host read of the first column."""
+    if plain_causal_attention(model) and bool((attention_mask[:, 0] == 0).any()):
+        return causal_padding_mask(attention_mask)
+    return attention_mask
+
+
 def model_device(model) -> torch.device:
     for p in model.parameters():
         return p.device

@@ -56,7 +56,7 @@ import functools
 import torch
 import torch.nn.functional as F
 
-from ..models import position_ids_from_mask
+from ..models import causal_padding_mask, position_ids_from_mask
 from .support import rope_cis, rope_pair_order, train_autocast
 
 _PERMS: dict = {}
@@ -116,9 +116,7 @@ def _allowed(valid: torch.Tensor) -> torch.Tensor | None:
     queries also see themselves (no empty softmax row). None when nothing is padded (use is_causal)."""
     if bool(valid.all()):
         return None
-    T = valid.shape[1]
-    causal = torch.ones(T, T, dtype=torch.bool, device=valid.device).tril_()
-    return (causal & (valid[:, None, :] | torch.eye(T, dtype=torch.bool, device=valid.device)))[:, None]
+    return causal_padding_mask(valid)
 
 
 def _decoder(model, x: torch.Tensor, cis: torch.Tensor, attend) -> torch.Tensor:

@@ -252,8 +252,9 @@ def token_values(value_model, input_ids: torch.Tensor, attention_mask: torch.Ten
     if lean_support(inner, input_ids.shape[1], mode="train", head="score")[0]:  # same numbers, fewer ops
         hidden = lean.lean_hidden(inner, input_ids, attention_mask)  # (B, T, H)
     else:
-        hidden = getattr(inner, inner.base_model_prefix)(input_ids=input_ids, attention_mask=attention_mask,
-                     position_ids=models.position_ids_from_mask(attention_mask)).last_hidden_state  # (B, T, H)
+        hidden = getattr(inner, inner.base_model_prefix)(  # a 4D mask for left padding: no empty attention row
+            input_ids=input_ids, attention_mask=models.hf_attention_mask(attention_mask, inner),
+            position_ids=models.position_ids_from_mask(attention_mask)).last_hidden_state  # (B, T, H)
     v = inner.score(hidden).squeeze(-1).float()  # (B, T): value after token j
     return torch.cat([torch.zeros_like(v[:, :1]), v[:, :-1]], dim=1)  # (B, T)
 

@@ -170,3 +170,53 @@ def test_masked_reductions_by_hand():
     assert sel.var().item() == pytest.approx(1.0, abs=1e-5)
     w2 = masked_whiten(x, m, shift_mean=False)
     assert w2[m.bool()].mean().item() == pytest.approx(8.0 / 3, abs=1e-5)
+
+
+@pytest.mark.parametrize("kind", ["llama", "gpt2"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_left_padded_hf_forward_gets_a_mask_without_empty_rows_and_the_same_numbers(kind, dtype):
+    """models.hf_attention_mask: with left padding, a 4D mask where each pad query sees itself; the real tokens'
+    logits equal the 2D mask's exactly, and so do sequence_logprobs' (the HF path: bf16 weights or GPT-2)."""
+    from transformers import GPT2Config, GPT2LMHeadModel, LlamaConfig, LlamaForCausalLM
+
+    from posttrain.models import hf_attention_mask
+
+    torch.manual_seed(0)
+    if kind == "llama":
+        model = LlamaForCausalLM(LlamaConfig(vocab_size=64, hidden_size=32, intermediate_size=64, num_hidden_layers=2,
+                                             num_attention_heads=4, num_key_value_heads=2))
+    else:
+        model = GPT2LMHeadModel(GPT2Config(vocab_size=64, n_embd=32, n_layer=2, n_head=4, bos_token_id=0,
+                                           eos_token_id=0))
+    model = model.to(dtype).eval()
+    ids = torch.randint(3, 60, (3, 9))
+    am = torch.ones(3, 9, dtype=torch.long)
+    am[0, :4], am[1, :2] = 0, 0
+    four = hf_attention_mask(am, model)
+    assert four.shape == (3, 1, 9, 9) and bool(four.any(-1).all())  # no query row without a key
+    assert hf_attention_mask(torch.ones(2, 5, dtype=torch.long), model).shape == (2, 5)  # no left padding: 2D
+    pos = (am.cumsum(-1) - 1).clamp(min=0)
+    with torch.no_grad():
+        plain = model(input_ids=ids, attention_mask=am, position_ids=pos).logits.float()
+        ours = model(input_ids=ids, attention_mask=four, position_ids=pos).logits.float()
+        assert torch.equal(plain[am.bool()], ours[am.bool()])
+        lp, _ = sequence_logprobs(model, ids, am)
+        ref = torch.log_softmax(plain[:, :-1], -1).gather(-1, ids[:, 1:, None])[..., 0]  # (B, T-1)
+        m = (am[:, 1:] * am[:, :-1]).bool()
+        assert torch.allclose(lp[:, 1:][m], ref[m], atol=1e-5)
+
+
+def test_a_sliding_window_model_keeps_the_2d_mask():
+    """A 4D mask would replace a sliding-window model's windows: such models get the plain 2D padding mask."""
+    from transformers import MistralConfig, MistralForCausalLM
+
+    from posttrain.models import hf_attention_mask, plain_causal_attention
+
+    cfg = dict(vocab_size=64, hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=4,
+               num_key_value_heads=2)
+    windowed, plain = MistralForCausalLM(MistralConfig(sliding_window=4, **cfg)), \
+        MistralForCausalLM(MistralConfig(sliding_window=None, **cfg))
+    assert not plain_causal_attention(windowed) and plain_causal_attention(plain)
+    am = torch.ones(2, 6, dtype=torch.long)
+    am[0, :3] = 0
+    assert hf_attention_mask(am, windowed) is am and hf_attention_mask(am, plain).shape == (2, 1, 6, 6)
