@@ -176,7 +176,7 @@ def test_masked_reductions_by_hand():
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
 def test_left_padded_hf_forward_gets_a_mask_without_empty_rows_and_the_same_numbers(kind, dtype):
     """models.hf_attention_mask: with left padding, a 4D mask where each pad query sees itself; the real tokens'
-    logits equal the 2D mask's exactly, and so do sequence_logprobs' (the HF path: bf16 weights or GPT-2)."""
+    logits equal the 2D mask's (within rounding), and so do sequence_logprobs' (the HF path: bf16 weights or GPT-2)."""
     from transformers import GPT2Config, GPT2LMHeadModel, LlamaConfig, LlamaForCausalLM
 
     from posttrain.models import hf_attention_mask
@@ -199,7 +199,9 @@ def test_left_padded_hf_forward_gets_a_mask_without_empty_rows_and_the_same_numb
     with torch.no_grad():
         plain = model(input_ids=ids, attention_mask=am, position_ids=pos).logits.float()
         ours = model(input_ids=ids, attention_mask=four, position_ids=pos).logits.float()
-        assert torch.equal(plain[am.bool()], ours[am.bool()])
+        # the same function of the same numbers (equal here); a kernel chosen per mask kind may round differently
+        tol = 1e-5 if dtype == torch.float32 else 2e-2
+        assert torch.allclose(plain[am.bool()], ours[am.bool()], atol=tol, rtol=tol)
         lp, _ = sequence_logprobs(model, ids, am)
         ref = torch.log_softmax(plain[:, :-1], -1).gather(-1, ids[:, 1:, None])[..., 0]  # (B, T-1)
         m = (am[:, 1:] * am[:, :-1]).bool()
