@@ -112,6 +112,7 @@ def train(res: Resolved, ensure) -> Path:
     """Fine-tune the base model (`ensure("base")`: a preset built from scratch or a local HF dir)
     on the task; returns the final model directory."""
     from posttrain import evaluation, tasks
+    from posttrain.lean.support import sharded_problem
     from posttrain.models import load_model, load_tokenizer, maybe_lora, save_model, token_budget
 
     cfg: SFTConfig = res.stage_cfg
@@ -146,6 +147,12 @@ def train(res: Resolved, ensure) -> Path:
     say(f"[sft] {len(train_pairs)} training rows, batch {cfg.batch_size} (micro {micro} rows, <= {budget} "
         f"tokens), {cfg.max_steps} steps, "
         f"lr {cfg.lr}, {accelerator.num_processes} process(es) on {accelerator.device}")
+    # A model sharded over several processes (FSDP, ZeRO-3) runs its forward only when every process does: the
+    # main process alone cannot generate samples with it (it would wait for the others forever).
+    sharded = accelerator.num_processes > 1 and sharded_problem(accelerator.unwrap_model(model)) is not None
+    if sharded and cfg.eval_every and cfg.num_samples:
+        say(f"[sft] no samples during training: the model is sharded over {accelerator.num_processes} processes; "
+            f"the final evaluation runs on final/")
     tokens_seen, t_last = 0, time.time()
     for step in range(start, cfg.max_steps):
         idx = loop.batch_indices(len(train_pairs), cfg.batch_size, cfg.seed, step,
@@ -176,7 +183,7 @@ def train(res: Resolved, ensure) -> Path:
             el = eval_loss(model, eval_pairs, tokenizer.pad_token_id, micro, budget)
             metrics.log(done, {"eval_loss": el}, console=False)
             say(f"[sft] step {done}: eval loss {el:.4f}")
-            if cfg.num_samples and accelerator.is_main_process:
+            if cfg.num_samples and accelerator.is_main_process and not sharded:
                 show = eval_rows[: cfg.num_samples]
                 outs = evaluation.complete(accelerator.unwrap_model(model), tokenizer, [r["prompt"] for r in show],
                                            max_new_tokens=cfg.max_new_tokens)
@@ -195,7 +202,10 @@ def train(res: Resolved, ensure) -> Path:
             untrained = load_model(base_dir, res.model.dtype, device=accelerator.device)
             before = evaluation.evaluate_model(res.task.name, untrained, tokenizer, rows,
                                                max_new_tokens=cfg.max_new_tokens)
-            after = evaluation.evaluate_model(res.task.name, accelerator.unwrap_model(model), tokenizer, rows,
+            # sharded: the whole weights are in final/ (the in-memory model holds this process's shard)
+            trained = load_model(final, res.model.dtype, device=accelerator.device) if whole is not None \
+                else accelerator.unwrap_model(model)
+            after = evaluation.evaluate_model(res.task.name, trained, tokenizer, rows,
                                               max_new_tokens=cfg.max_new_tokens)
             loop.write_json(run_dir / "eval.json", {"untrained": before, "sft": after})
             say(evaluation.format_comparison({"untrained": before, "sft": after}, res.task.name))
