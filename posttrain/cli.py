@@ -360,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.recipe}: valid ({', '.join(res.stage for res in checked)})")
             return 0
         if cmd in ("verifiers", "verify"):
-            from verifiers.cli import main as vmain
+            from posttrain.verifiers.cli import main as vmain
 
             return vmain(["list"] + rest if cmd == "verifiers" else rest)
         if cmd == "models":

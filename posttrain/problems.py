@@ -60,7 +60,7 @@ def row_reference(row: dict[str, Any]) -> Any:
 def build_verifier(spec: str, options: dict[str, Any], task, rows: list[dict[str, Any]], *, stage: str = "grpo"):
     """The Verifier instance of `spec` (`<stage>.verifier`; auto: the rows' `verifier` field, else the task's
     VERIFIER; none: None) with its keyword `options`; one-line ConfigErrors naming the key."""
-    from verifiers.registry import get_verifier
+    from posttrain.verifiers.registry import get_verifier
 
     spec = spec.strip()
     if spec == "none":
@@ -98,7 +98,7 @@ def check_problems(rows: list[dict[str, Any]], source: str, on_bad: str, *,
 
 def preflight(verifier, pool, rows: list[dict[str, Any]], source: str, say, *, stage: str = "grpo") -> None:
     """Score the worked solutions of the first rows: a verifier that raises stops here, with the row."""
-    from verifiers.runner import VerifierError
+    from posttrain.verifiers.runner import VerifierError
 
     rows = [r for r in rows[:PREFLIGHT_ROWS] if isinstance(r.get("completion"), str) and row_reference(r) is not None]
     if not rows:
@@ -201,7 +201,7 @@ def score_groups(reward: Reward, ps: list[Problem], out: list, K: int,
     """This process's samples scored: (groups, the message of a verifier error under on_verifier_error=stop, the
     number of distinct completions scored). Identical completions of a prompt are scored once (verifiers and
     reward models are deterministic; a confident policy samples many duplicates, and a sandboxed check is costly)."""
-    from verifiers.runner import VerifierError
+    from posttrain.verifiers.runner import VerifierError
 
     if not ps:
         return [], None, 0

@@ -17,7 +17,7 @@ PPO, GRPO, online DPO and evaluation get rewards only through this interface, wh
   the reward is read at the last token of the LEFT-padded sequence prompt + completion (+ eos),
   the same token the RM trainer pools at (`reward_forward`).
 - `VerifierScorer`: a verifier spec ("math", "0.9*math+0.1*format", a `{name: weight}` mapping, a
-  `Verifier`) run through `verifiers.runner.VerifierPool`: every check has a hard wall-clock limit;
+  `Verifier`) run through `posttrain.verifiers.runner.VerifierPool`: every check has a hard wall-clock limit;
   a hung or crashing check scores 0 with reason "timeout" / "crashed: ..." and the call returns.
   A verifier that raises (its own bug) propagates as `VerifierError`; with `on_error="zero"` that
   completion scores 0 with reason "verifier error: <type>: <message>" and the others are scored
@@ -193,7 +193,7 @@ class RewardModelScorer:
 
 # ----------------------------------------------------------------------------- verifiers
 class VerifierScorer:
-    """Rewards from verifiers under hard time limits (`verifiers.runner.VerifierPool`).
+    """Rewards from posttrain.verifiers under hard time limits (`posttrain.verifiers.runner.VerifierPool`).
 
     `spec`: a registry spec ("math", "0.9*math+0.1*format", "file.py:name"), a `{spec: weight}`
     mapping (a weighted composition), or a `Verifier`. `pool`: a VerifierPool to reuse across calls
@@ -205,9 +205,9 @@ class VerifierScorer:
 
     def __init__(self, spec: Any, pool=None, *, timeout_s: float | None = None, workers: int | None = None,
                  name: str | None = None, on_error: str = "raise"):
-        from verifiers.combine import WeightedVerifier
-        from verifiers.registry import get_verifier
-        from verifiers.runner import VerifierPool
+        from posttrain.verifiers.combine import WeightedVerifier
+        from posttrain.verifiers.registry import get_verifier
+        from posttrain.verifiers.runner import VerifierPool
 
         if isinstance(spec, Mapping):
             self.verifier = WeightedVerifier([(get_verifier(k) if isinstance(k, str) else k, float(w))
@@ -227,8 +227,8 @@ class VerifierScorer:
         """The pool's verdicts; with on_error="zero" an item whose check raised scores 0 and the rest are scored."""
         if self.on_error == "raise":
             return self.pool.score(self.verifier, completions, refs, timeout_s=self.timeout_s)
-        from verifiers.base import Verdict
-        from verifiers.runner import VerifierError
+        from posttrain.verifiers.base import Verdict
+        from posttrain.verifiers.runner import VerifierError
 
         out: list[Any] = [None] * len(completions)
         todo = list(range(len(completions)))

@@ -957,7 +957,7 @@ def _grpo_setup(args, real: bool = False) -> SimpleNamespace:
 
     STAGES["grpo"].load()  # the trainer imported before any memory baseline, as the CLI would
     from posttrain.models import save_model
-    from verifiers.format import LengthVerifier
+    from posttrain.verifiers.format import LengthVerifier
 
     root = Path(tempfile.mkdtemp(prefix="posttrain-bench-grpo-"))
     if real:

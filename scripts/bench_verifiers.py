@@ -14,7 +14,7 @@ What it measures, side by side in one run:
 2. math, mix: the gold completions of `MathVerifier.audit_problems` (integers, fractions,
    decimals, percentages, sqrt, pi, sets, intervals, tuples, polynomials, equations,
    scientific notation, letters), i.e. the sympy paths too, on one worker.
-3. code sandbox, only if `verifiers.code_sandbox` imports: wall milliseconds per trivial
+3. code sandbox, only if `posttrain.verifiers.code_sandbox` imports: wall milliseconds per trivial
    candidate (`def add(a, b): return a + b` against one assert) scored one at a time, next to
    a bare `python -c pass` start; the difference is the sandbox's added overhead per
    candidate (harness, namespaces, fork, cleanup) on top of an interpreter start.
@@ -32,7 +32,7 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from verifiers import VerifierPool, get_verifier  # noqa: E402
+from posttrain.verifiers import VerifierPool, get_verifier  # noqa: E402
 
 
 def simple_numeric(n: int, seed: int = 0) -> tuple[list[str], list[str]]:
@@ -74,9 +74,9 @@ def in_process_rate(verifier, completions, references, repeats: int) -> dict:
 
 def code_overhead(n: int) -> dict | None:
     try:
-        from verifiers.code_sandbox import CodeVerifier
+        from posttrain.verifiers.code_sandbox import CodeVerifier
     except Exception as e:  # not installed in this checkout
-        return {"skipped": f"verifiers.code_sandbox unavailable ({type(e).__name__}: {e})"}
+        return {"skipped": f"posttrain.verifiers.code_sandbox unavailable ({type(e).__name__}: {e})"}
     verifier = CodeVerifier()
     reference = {"tests": ["assert add(1, 2) == 3"], "entry_point": "add"}
     completion = "```python\ndef add(a, b):\n    return a + b\n```"

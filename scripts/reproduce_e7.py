@@ -5,7 +5,7 @@ Pipeline, through the public CLI and API only:
      digit-by-digit solutions, stopped on purpose at partial accuracy (see the recipe). Timed.
   2. Baselines without RL, on the same N held-out problems: greedy accuracy, and 16 samples per problem at
      temperature 1 from the rollout engine (`posttrain.rollout.generate`, n=16), scored by the math
-     verifier in a worker pool (`verifiers.runner.VerifierPool`). From them, for K in {1, 4, 16}:
+     verifier in a worker pool (`posttrain.verifiers.runner.VerifierPool`). From them, for K in {1, 4, 16}:
      - pass@K: verifier-oracle best-of-K (some sample of K is right), the unbiased estimator of
        Chen et al. 2021 (1 - C(n-c, K) / C(n, K)); the whole curve K = 1..16 is computed too;
      - maj@K: majority vote over the verifier's normalised extracted answers (no answer = no vote; a
@@ -159,7 +159,7 @@ def evaluate_model(model_dir: Path, rows: list[dict], max_new_tokens: int, pool,
     from posttrain.models import load_model, load_tokenizer
     from posttrain.runtime import default_device
     from posttrain.rollout import SamplingParams, generate
-    from verifiers.registry import get_verifier
+    from posttrain.verifiers.registry import get_verifier
 
     task = importlib.import_module(mode.task)
 
@@ -724,7 +724,7 @@ def main(argv: list[str] | None = None) -> int:
     from posttrain.models import is_model_dir
     from posttrain.tasks import load_split
     from posttrain.runtime import cpu_model
-    from verifiers.runner import VerifierPool
+    from posttrain.verifiers.runner import VerifierPool
 
     task_module = importlib.import_module(mode.task)
     t_all, load_start = time.time(), os.getloadavg()[0]

@@ -1,5 +1,6 @@
 """The package's layers (ARCHITECTURE.md): nothing imports upward, there are no import cycles, no trainer
-imports another, and `verifiers/` imports nothing of posttrain or torch.
+imports another, and `verifiers/` (installed as `posttrain.verifiers`, the bottom layer) imports nothing of
+posttrain outside itself, and no torch.
 
 Read from the source with `ast` (every import statement, also those inside functions: a lazy import still
 ties two modules together), so the check needs no imports of its own and runs in milliseconds.
@@ -15,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # Bottom to top. A module's unit is its first component under posttrain/ (posttrain.rollout.engine -> rollout).
 LAYERS: list[set[str]] = [
+    {"verifiers"},  # the repository's verifiers/ folder, installed as posttrain.verifiers (pyproject's package-dir)
     {"errors", "runtime", "trackers"},
     {"config"},
     {"data", "tasks", "chat", "models", "model_files", "model_card"},
@@ -28,17 +30,20 @@ LAYERS: list[set[str]] = [
 LAYER_OF = {unit: i for i, units in enumerate(LAYERS) for unit in units}
 # Packages of data files only (pyproject maps recipes/ to posttrain.recipes): nothing to import from.
 DATA_PACKAGES = {"posttrain.recipes", "posttrain.recipes.launch"}
+VERIFIERS = (ROOT / "verifiers", "posttrain.verifiers")
 
 
-def module_files(package_dir: Path) -> dict[str, Path]:
+def module_files(package_dir: Path, name: str | None = None) -> dict[str, Path]:
     """Dotted module name -> file, for every .py file of the package at `package_dir` (a package's own name
-    for its __init__.py)."""
+    for its __init__.py), installed as `name` (default: the folder's name)."""
     base = package_dir.parent
     out = {}
     for path in sorted(package_dir.rglob("*.py")):
         parts = list(path.relative_to(base).with_suffix("").parts)
         if parts[-1] == "__init__":
             parts = parts[:-1]
+        if name:
+            parts = name.split(".") + parts[1:]
         out[".".join(parts)] = path
     return out
 
@@ -60,7 +65,9 @@ def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
         parent = target.rpartition(".")[0]
         if parent in known:
             found.add(parent)
-        elif target.split(".")[0] not in {k.split(".")[0] for k in known}:
+        elif target.split(".")[0] == "posttrain":  # a posttrain module outside the graph: named in full
+            found.add(target)
+        else:
             found.add(target.split(".")[0])
 
     for node in ast.walk(tree):
@@ -83,8 +90,11 @@ def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
     return found
 
 
-def import_graph(package_dir: Path) -> dict[str, set[str]]:
-    files = module_files(package_dir)
+def import_graph(*packages: Path | tuple[Path, str]) -> dict[str, set[str]]:
+    """The import graph of one or more packages (a folder, or (folder, installed name)) together."""
+    files: dict[str, Path] = {}
+    for pkg in packages:
+        files.update(module_files(*pkg) if isinstance(pkg, tuple) else module_files(pkg))
     return {name: imports_of(name, path, set(files)) for name, path in files.items()}
 
 
@@ -127,7 +137,7 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 def unit(module: str) -> str:
     parts = module.split(".")
-    return parts[1] if len(parts) > 1 else "__init__"
+    return parts[1] if len(parts) > 1 else "__init__"  # posttrain.verifiers.* -> "verifiers"
 
 
 def layer_violations(graph: dict[str, set[str]]) -> list[str]:
@@ -148,16 +158,18 @@ def layer_violations(graph: dict[str, set[str]]) -> list[str]:
 
 
 def test_posttrain_layers_and_no_cycles():
-    graph = import_graph(ROOT / "posttrain")
+    graph = import_graph(ROOT / "posttrain", VERIFIERS)
     assert "posttrain.trainers.grpo" in graph and "posttrain.lean.support" in graph
+    assert "posttrain.verifiers.math_answer.verifier" in graph and "posttrain.verifiers.registry" in graph["posttrain.problems"]
     problems = layer_violations(graph) + [f"import cycle: {' <-> '.join(c)}" for c in cycles(graph)]
     assert not problems, "\n".join(problems)
 
 
 def test_verifiers_import_nothing_of_posttrain_or_torch_and_have_no_cycles():
-    graph = import_graph(ROOT / "verifiers")
+    graph = import_graph(VERIFIERS)
+    assert "posttrain.verifiers.registry" in graph["posttrain.verifiers"]
     bad = [f"{m} imports {t}" for m, ts in sorted(graph.items()) for t in sorted(ts)
-           if t.split(".")[0] in ("posttrain", "torch")]
+           if t == "torch" or t == "posttrain" or (t.startswith("posttrain.") and t not in graph)]
     bad += [f"import cycle: {' <-> '.join(c)}" for c in cycles(graph)]
     assert not bad, "\n".join(bad)
 
@@ -206,3 +218,22 @@ def test_checker_resolves_relative_and_submodule_imports(tmp_path, stmt, expecte
     root = _package(tmp_path, {"__init__.py": "", "models.py": "", "rollout/__init__.py": "",
                                "rollout/records.py": "", "rollout/engine.py": stmt})
     assert import_graph(root)["posttrain.rollout.engine"] == expected
+
+
+def test_checker_maps_the_verifiers_folder_to_its_installed_name(tmp_path):
+    """verifiers/ is installed as posttrain.verifiers: its own imports resolve inside it, one of the rest of
+    posttrain is named in full (and so reported), and a posttrain module importing it sees the bottom layer."""
+    folder = tmp_path / "verifiers"
+    (folder / "math_answer").mkdir(parents=True)
+    (folder / "__init__.py").write_text("from posttrain.verifiers.registry import get\n")
+    (folder / "registry.py").write_text("from posttrain.config import load\nfrom . import math_answer\n")
+    (folder / "math_answer" / "__init__.py").write_text("import sympy\n")
+    graph = import_graph((folder, "posttrain.verifiers"))
+    assert graph["posttrain.verifiers"] == {"posttrain.verifiers.registry"}
+    assert graph["posttrain.verifiers.registry"] == {"posttrain.config", "posttrain.verifiers.math_answer"}
+    assert graph["posttrain.verifiers.math_answer"] == {"sympy"}
+    root = _package(tmp_path, {"__init__.py": "", "problems.py": "from posttrain.verifiers import get\n",
+                               "errors.py": ""})
+    both = import_graph(root, (folder, "posttrain.verifiers"))
+    assert both["posttrain.problems"] == {"posttrain.verifiers"}
+    assert not [b for b in layer_violations(both) if "posttrain.problems" in b]

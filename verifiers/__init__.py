@@ -1,6 +1,6 @@
 """The verifier layer: score a completion against a reference, under hard limits, without torch.
 
-    from verifiers import get_verifier, score_batch, VerifierPool, combine, run_audit
+    from posttrain.verifiers import get_verifier, score_batch, VerifierPool, combine, run_audit
     math = get_verifier("math")
     verdicts = score_batch(math, completions, answers, workers=2, timeout_s=5)
 
@@ -11,18 +11,18 @@ from __future__ import annotations
 
 from typing import Any
 
-from verifiers.base import AuditProblem, Verdict, Verifier
-from verifiers.combine import WeightedVerifier
-from verifiers.registry import FunctionVerifier, combine, get_verifier, list_verifiers
-from verifiers.runner import VerifierError, VerifierPool, default_workers, score_batch, score_one
+from posttrain.verifiers.base import AuditProblem, Verdict, Verifier
+from posttrain.verifiers.combine import WeightedVerifier
+from posttrain.verifiers.registry import FunctionVerifier, combine, get_verifier, list_verifiers
+from posttrain.verifiers.runner import VerifierError, VerifierPool, default_workers, score_batch, score_one
 
 _LAZY = {
-    "MathVerifier": "verifiers.math_answer",
-    "FormatVerifier": "verifiers.format",
-    "LengthVerifier": "verifiers.format",
-    "run_audit": "verifiers.audit",
-    "AuditReport": "verifiers.audit",
-    "AuditCase": "verifiers.audit",
+    "MathVerifier": "posttrain.verifiers.math_answer",
+    "FormatVerifier": "posttrain.verifiers.format",
+    "LengthVerifier": "posttrain.verifiers.format",
+    "run_audit": "posttrain.verifiers.audit",
+    "AuditReport": "posttrain.verifiers.audit",
+    "AuditCase": "posttrain.verifiers.audit",
 }
 
 __all__ = [
@@ -37,4 +37,4 @@ def __getattr__(name: str) -> Any:
         import importlib
 
         return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'verifiers' has no attribute {name!r}")
+    raise AttributeError(f"module 'posttrain.verifiers' has no attribute {name!r}")

@@ -1,7 +1,7 @@
-"""`python -m verifiers ...`: the verifier command line (`verifiers.cli`), e.g. `python -m verifiers list`."""
+"""`python -m posttrain.verifiers ...`: the verifier command line (`posttrain.verifiers.cli`), e.g. `python -m posttrain.verifiers list`."""
 import sys
 
-from verifiers.cli import main
+from posttrain.verifiers.cli import main
 
 if __name__ == "__main__":
-    sys.exit(main(prog="python -m verifiers"))
+    sys.exit(main(prog="python -m posttrain.verifiers"))

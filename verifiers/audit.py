@@ -1,6 +1,6 @@
 """Audit a verifier against its own problems and a catalogue of known reward hacks.
 
-    from verifiers import get_verifier, run_audit
+    from posttrain.verifiers import get_verifier, run_audit
     v = get_verifier("math")
     report = run_audit(v, v.audit_problems(50, seed=0))
     print(report.format()); assert report.ok
@@ -32,8 +32,8 @@ import random
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
-from verifiers.base import AuditProblem, Verifier
-from verifiers.runner import VerifierError, VerifierPool
+from posttrain.verifiers.base import AuditProblem, Verifier
+from posttrain.verifiers.runner import VerifierError, VerifierPool
 
 _WORDS = ("alpha", "river", "quietly", "table", "moon", "seven", "blue", "running", "because", "paper",
           "window", "maybe", "orange", "thinking", "cloud", "quick", "stone", "letter", "green", "under")

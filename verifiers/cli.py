@@ -1,9 +1,9 @@
 """Command line for the verifier layer: list, audit, score.
 
-    python -m verifiers.cli list        (the last line says which code sandbox runs: bubblewrap or fallback)
-    python -m verifiers.cli audit math --n 50 --seed 0 [--json report.json]
-    python -m verifiers.cli audit my_checks.py:grade --problems problems.jsonl
-    python -m verifiers.cli score math rollouts.jsonl --completion-field completion --reference-field answer
+    python -m posttrain.verifiers.cli list        (the last line says which code sandbox runs: bubblewrap or fallback)
+    python -m posttrain.verifiers.cli audit math --n 50 --seed 0 [--json report.json]
+    python -m posttrain.verifiers.cli audit my_checks.py:grade --problems problems.jsonl
+    python -m posttrain.verifiers.cli score math rollouts.jsonl --completion-field completion --reference-field answer
 
 (`posttrain verifiers` and `posttrain verify audit|score ...` call `main` with the same arguments.)
 
@@ -26,7 +26,7 @@ import os
 import sys
 from typing import Any
 
-from verifiers.base import AuditProblem
+from posttrain.verifiers.base import AuditProblem
 
 
 class UsageError(Exception):
@@ -47,7 +47,7 @@ def _options(pairs: list[str]) -> dict[str, Any]:
 
 
 def _verifier(name: str, options: dict[str, Any]):
-    from verifiers.registry import get_verifier
+    from posttrain.verifiers.registry import get_verifier
 
     try:
         return get_verifier(name, **options)
@@ -98,7 +98,7 @@ def _load_problems(path: str) -> list[AuditProblem]:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from verifiers.registry import list_verifiers
+    from posttrain.verifiers.registry import list_verifiers
 
     rows = list_verifiers()
     width = max(len(r[0]) for r in rows)
@@ -116,7 +116,7 @@ def _code_sandbox_line() -> str:
     import warnings
 
     try:
-        from verifiers.code_sandbox import CodeVerifier
+        from posttrain.verifiers.code_sandbox import CodeVerifier
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # the no-root fallback's warning: the line says it
@@ -127,8 +127,8 @@ def _code_sandbox_line() -> str:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
-    from verifiers.audit import run_audit
-    from verifiers.runner import VerifierError
+    from posttrain.verifiers.audit import run_audit
+    from posttrain.verifiers.runner import VerifierError
 
     verifier = _verifier(args.name, _options(args.option))
     if args.problems:
@@ -156,7 +156,7 @@ def cmd_audit(args: argparse.Namespace) -> int:
 
 
 def cmd_score(args: argparse.Namespace) -> int:
-    from verifiers.runner import VerifierError, score_batch
+    from posttrain.verifiers.runner import VerifierError, score_batch
 
     verifier = _verifier(args.name, _options(args.option))
     rows = _read_jsonl(args.file)
@@ -187,7 +187,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser(prog: str = "python -m verifiers.cli") -> argparse.ArgumentParser:
+def build_parser(prog: str = "python -m posttrain.verifiers.cli") -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=prog, description="List, audit and run verifiers.")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("list", help="installed verifiers: name, origin, description")
@@ -216,7 +216,7 @@ def build_parser(prog: str = "python -m verifiers.cli") -> argparse.ArgumentPars
     return parser
 
 
-def main(argv: list[str] | None = None, prog: str = "python -m verifiers.cli") -> int:
+def main(argv: list[str] | None = None, prog: str = "python -m posttrain.verifiers.cli") -> int:
     """Run a command; returns the exit code (0 ok, 1 audit found problems, 2 user error)."""
     parser = build_parser(prog)
     try:

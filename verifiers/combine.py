@@ -1,13 +1,13 @@
 """Weighted composition: several verifiers scored as one (e.g. correctness 0.9 + format 0.1).
 
-    from verifiers import WeightedVerifier, combine, get_verifier
+    from posttrain.verifiers import WeightedVerifier, combine, get_verifier
     reward = WeightedVerifier([(get_verifier("math"), 0.9), (get_verifier("format", tags="answer"), 0.1)])
     reward = combine(("math", 0.9), (get_verifier("format", tags="answer"), 0.1))   # names resolved
     reward = get_verifier("0.9*math + 0.1*format")          # the same, from a config string
 
-`WeightedVerifier` takes verifier objects only; `combine` (in `verifiers.registry`, which resolves
+`WeightedVerifier` takes verifier objects only; `combine` (in `posttrain.verifiers.registry`, which resolves
 names) and `get_verifier`'s composition specs build one from names. So this module needs nothing but
-`verifiers.base`, and the registry builds on it, never the other way round.
+`posttrain.verifiers.base`, and the registry builds on it, never the other way round.
 
 score = sum(w_i * s_i) / sum(w_i) (exactly 1.0 when every part scores 1.0, so `passed` means
 every part passed); reason = "name: reason; name: reason" in the order given; details =
@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from typing import Any, Iterable, Mapping
 
-from verifiers.base import AuditProblem, Verdict, Verifier
+from posttrain.verifiers.base import AuditProblem, Verdict, Verifier
 
 
 class WeightedVerifier(Verifier):
@@ -42,7 +42,7 @@ class WeightedVerifier(Verifier):
             verifier, weight = entry
             if isinstance(verifier, str):
                 raise ValueError(f"composition part {verifier!r} is a name, not a Verifier: resolve it with "
-                                 f"get_verifier({verifier!r}), or build the composition with verifiers.combine()")
+                                 f"get_verifier({verifier!r}), or build the composition with posttrain.verifiers.combine()")
             if not isinstance(verifier, Verifier):
                 raise ValueError(f"composition part {verifier!r} is not a Verifier")
             if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not math.isfinite(weight) or weight < 0:

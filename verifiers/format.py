@@ -24,8 +24,8 @@ from __future__ import annotations
 import re
 from typing import Any, Callable, Sequence
 
-from verifiers.base import Verdict, Verifier
-from verifiers.math_answer import _match_brace
+from posttrain.verifiers.base import Verdict, Verifier
+from posttrain.verifiers.math_answer import _match_brace
 
 _BOXED_RE = re.compile(r"\\boxed\s*\{")
 _TOKEN_RE = re.compile(r"\w+|[^\w\s]")

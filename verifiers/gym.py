@@ -31,7 +31,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from verifiers.base import AuditProblem, Verdict, Verifier
+from posttrain.verifiers.base import AuditProblem, Verdict, Verifier
 
 INSTALL = 'pip install "posttrain[gym]"'
 AUDIT_DATASETS = ("basic_arithmetic", "chain_sum", "leg_counting", "spell_backward", "word_sorting")

@@ -1,6 +1,6 @@
 """Logic-puzzle verifiers: seeded generators and exact checkers for three families.
 
-    from verifiers.logic import LogicVerifier, generate
+    from posttrain.verifiers.logic import LogicVerifier, generate
     items = generate("countdown", 100, seed=0, split="train", difficulty=2)   # [{"prompt", "reference", "gold"}]
     LogicVerifier().check(completion, items[0]["reference"])                  # dispatches on reference["family"]
 
@@ -27,11 +27,11 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from verifiers.base import AuditProblem, Verdict, Verifier
-from verifiers.puzzles.common import PuzzleVerifier, Split
-from verifiers.puzzles.countdown import CountdownVerifier
-from verifiers.puzzles.knights import KnightsKnavesVerifier
-from verifiers.puzzles.sudoku import SudokuVerifier
+from posttrain.verifiers.base import AuditProblem, Verdict, Verifier
+from posttrain.verifiers.puzzles.common import PuzzleVerifier, Split
+from posttrain.verifiers.puzzles.countdown import CountdownVerifier
+from posttrain.verifiers.puzzles.knights import KnightsKnavesVerifier
+from posttrain.verifiers.puzzles.sudoku import SudokuVerifier
 
 __all__ = ["CountdownVerifier", "KnightsKnavesVerifier", "SudokuVerifier", "LogicVerifier", "FAMILIES", "generate"]
 

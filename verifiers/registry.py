@@ -34,21 +34,21 @@ import re
 import sys
 from typing import Any, Callable
 
-from verifiers.base import Verdict, Verifier
-from verifiers.combine import WeightedVerifier
+from posttrain.verifiers.base import Verdict, Verifier
+from posttrain.verifiers.combine import WeightedVerifier
 
 ENTRY_POINT_GROUP = "posttrain.verifiers"
 
 BUILTINS: dict[str, str] = {
-    "math": "verifiers.math_answer:MathVerifier",
-    "format": "verifiers.format:FormatVerifier",
-    "length": "verifiers.format:LengthVerifier",
-    "code": "verifiers.code_sandbox:CodeVerifier",
-    "countdown": "verifiers.logic:CountdownVerifier",
-    "knights_knaves": "verifiers.logic:KnightsKnavesVerifier",
-    "sudoku": "verifiers.logic:SudokuVerifier",
-    "logic": "verifiers.logic:LogicVerifier",
-    "gym": "verifiers.gym:GymVerifier",  # reasoning-gym's scorers (optional extra posttrain[gym])
+    "math": "posttrain.verifiers.math_answer:MathVerifier",
+    "format": "posttrain.verifiers.format:FormatVerifier",
+    "length": "posttrain.verifiers.format:LengthVerifier",
+    "code": "posttrain.verifiers.code_sandbox:CodeVerifier",
+    "countdown": "posttrain.verifiers.logic:CountdownVerifier",
+    "knights_knaves": "posttrain.verifiers.logic:KnightsKnavesVerifier",
+    "sudoku": "posttrain.verifiers.logic:SudokuVerifier",
+    "logic": "posttrain.verifiers.logic:LogicVerifier",
+    "gym": "posttrain.verifiers.gym:GymVerifier",  # reasoning-gym's scorers (optional extra posttrain[gym])
 }
 
 _FILE_MODULES: dict[str, str] = {}  # module name -> absolute path
@@ -111,7 +111,7 @@ def as_verifier(obj: Any, name: str, origin: str, **options: Any) -> Verifier:
             raise ValueError(f"verifier {name!r} ({origin}) is an instance and takes no options; got {sorted(options)}")
         inst = obj
     elif isinstance(obj, type):
-        raise ValueError(f"{origin}: {name!r} is a class that does not subclass verifiers.base.Verifier")
+        raise ValueError(f"{origin}: {name!r} is a class that does not subclass posttrain.verifiers.base.Verifier")
     elif callable(obj):
         inst = FunctionVerifier(obj, name=name, **options)
     else:
@@ -222,7 +222,7 @@ def get_verifier(spec: str | Verifier, **options: Any) -> Verifier:
     if _is_composition(spec):
         if options:
             raise ValueError(f"options {sorted(options)} cannot be passed to a composition spec {spec!r}; "
-                             "build it with verifiers.combine() instead")
+                             "build it with posttrain.verifiers.combine() instead")
         parts = []
         for term in spec.split("+"):
             m = _TERM_RE.match(term)

@@ -1,6 +1,6 @@
 """Score completions under hard limits: worker processes, a wall-clock limit per check, crash isolation.
 
-    from verifiers import VerifierPool, get_verifier, score_batch
+    from posttrain.verifiers import VerifierPool, get_verifier, score_batch
     verdicts = score_batch("math", completions, answers, workers=2, timeout_s=5)
     with VerifierPool(workers=4) as pool:          # a training loop keeps one pool
         for step in ...:
@@ -62,7 +62,7 @@ import weakref
 from multiprocessing.connection import wait as _mp_wait
 from typing import Any, Sequence
 
-from verifiers.base import Verdict, Verifier
+from posttrain.verifiers.base import Verdict, Verifier
 
 INSTALL_TIMEOUT_S = 120.0  # unpickling the verifier + warmup() in a fresh worker
 MAX_INSTALLED = 32  # verifiers kept per worker (oldest installed dropped first, same order in the parent)
@@ -98,7 +98,7 @@ def _default_start_method() -> str:
 
 def _resolve(verifier: Verifier | str) -> Verifier:
     if isinstance(verifier, str):
-        from verifiers.registry import get_verifier
+        from posttrain.verifiers.registry import get_verifier
 
         return get_verifier(verifier)
     if not isinstance(verifier, Verifier):
@@ -170,7 +170,7 @@ def _worker_main(conn, parent_end, memory_limit_mb: int | None, ppid: int) -> No
         if kind == "install":
             _, key, payload, files = msg
             try:
-                from verifiers.registry import _import_file_module
+                from posttrain.verifiers.registry import _import_file_module
 
                 for modname, path in files:
                     if modname not in sys.modules:
@@ -410,7 +410,7 @@ class VerifierPool:
                 f"verifier {name!r} cannot be sent to worker processes ({type(e).__name__}: {e}); define it at "
                 "module level (or load it as file.py:name) or score with workers=0") from e
         key = hashlib.sha1(payload).hexdigest()
-        from verifiers.registry import loaded_file_modules
+        from posttrain.verifiers.registry import loaded_file_modules
 
         files = loaded_file_modules()
         n_workers = max(1, min(self.workers, len(items)))

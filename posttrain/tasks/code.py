@@ -151,8 +151,8 @@ def corpus(n: int, seed: int) -> list[str]:
 
 def evaluate(metas: Sequence[dict[str, Any]], completions: Sequence[str], workers: int = 2) -> dict[str, float]:
     """accuracy (every test passes in the sandbox), tests_passed (fraction of tests), mean completion length."""
-    from verifiers.code_sandbox import CodeVerifier
-    from verifiers.runner import score_batch
+    from posttrain.verifiers.code_sandbox import CodeVerifier
+    from posttrain.verifiers.runner import score_batch
 
     verdicts = score_batch(CodeVerifier(partial_credit=True), list(completions), [m["reference"] for m in metas],
                            workers=workers)

@@ -41,7 +41,7 @@ import hashlib
 import random
 from typing import Any, Literal, Sequence
 
-from verifiers.puzzles import countdown as _cd  # the checker
+from posttrain.verifiers.puzzles import countdown as _cd  # the checker
 
 NAME = "tiny-countdown"
 VERIFIER = "countdown"

@@ -8,9 +8,9 @@ _verifiers: dict[str, Any] = {}
 
 
 def verifier(spec: str):
-    """`verifiers.get_verifier(spec)`, built once per process."""
+    """`posttrain.verifiers.get_verifier(spec)`, built once per process."""
     if spec not in _verifiers:
-        from verifiers.registry import get_verifier
+        from posttrain.verifiers.registry import get_verifier
 
         _verifiers[spec] = get_verifier(spec)
     return _verifiers[spec]

@@ -63,7 +63,7 @@ class GymTask:
     gold_quality = gold_breakdown = gold_key = gold_prefer = win_rate = None
 
     def __init__(self, spec: str):
-        from verifiers.gym import require_reasoning_gym
+        from posttrain.verifiers.gym import require_reasoning_gym
 
         rg = require_reasoning_gym()
         dataset, *pairs = spec.split(",")
@@ -85,7 +85,7 @@ class GymTask:
 
     def make_examples(self, n: int, seed: int, split: Literal["train", "eval"]) -> list[dict[str, Any]]:
         """`n` questions of `split` with their answers (see the module docstring)."""
-        from verifiers.gym import require_reasoning_gym
+        from posttrain.verifiers.gym import require_reasoning_gym
 
         if split not in ("train", "eval"):
             raise ValueError(f"split must be 'train' or 'eval', got {split!r}")
@@ -119,7 +119,7 @@ class GymTask:
 
     def evaluate(self, metas: Sequence[dict[str, Any]], completions: Sequence[str]) -> dict[str, float]:
         """accuracy (the gym verifier scores 1), mean_score (partial credit), format (an <answer> tag)."""
-        from verifiers.gym import GymVerifier
+        from posttrain.verifiers.gym import GymVerifier
 
         v = GymVerifier()
         scores = [v.check(c, m["reference"]).score for m, c in zip(metas, completions)]

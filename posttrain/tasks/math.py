@@ -1,5 +1,5 @@
 """tiny-math: seeded multi-step arithmetic word problems with worked, digit-by-digit solutions
-(the seed's §16 E7 problem set), checked by the math verifier (`verifiers.math_answer`).
+(the seed's §16 E7 problem set), checked by the math verifier (`posttrain.verifiers.math_answer`).
 
 Pure Python (no torch).
 
@@ -93,7 +93,7 @@ start, ops ([[sign, operand], ...]), n_steps, carries (columns with a carry/borr
 ("worked" | "direct"), check (the solution has a Check line), template ([start sentence,
 question] indices), split.
 
-Scoring: `evaluate` runs `verifiers.get_verifier("math")` in-process on every completion (the
+Scoring: `evaluate` runs `posttrain.verifiers.get_verifier("math")` in-process on every completion (the
 answers are short and the verifier has its own size guards; training uses the worker pool
 through `posttrain.scoring.VerifierScorer`).
 """

@@ -295,7 +295,7 @@ def train(res: Resolved, ensure) -> Path:
     from posttrain.config import STAGE_SECTIONS
     from posttrain.models import load_model, load_tokenizer, maybe_lora, save_model
     from posttrain.rollout import SamplingParams, collate_rollouts, generate
-    from verifiers.runner import VerifierPool
+    from posttrain.verifiers.runner import VerifierPool
 
     cfg: DistillConfig = res.stage_cfg
     check_config(cfg)

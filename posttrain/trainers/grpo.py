@@ -68,7 +68,7 @@ Config errors: policy_loss=gspo with another aggregation (its loss is a mean ove
 with a token-level rollout correction (one ratio per sequence takes one weight per sequence), a cap <= 1.
 
 Rewards come through `posttrain.scoring` only (a verifier spec such as "0.9*countdown + 0.1*format", a reward
-model, or both weighted). Checks run in a `verifiers.runner.VerifierPool` under a hard time limit: a hung or
+model, or both weighted). Checks run in a `posttrain.verifiers.runner.VerifierPool` under a hard time limit: a hung or
 crashing check scores 0 and the step goes on; one that raises scores 0 with its reason (on_verifier_error=zero)
 or stops the run (stop); a step where every check raised stops the run. Identical completions of a prompt are
 scored once (a sandboxed check is costly). One step (the unit of max_steps, logs, eval and checkpoints) is one
@@ -617,7 +617,7 @@ def train(res: Resolved, ensure) -> Path:
     """GRPO on the recipe's task from the SFT model; returns the final model directory."""
     from posttrain.models import load_model, load_reference, load_tokenizer, maybe_lora, save_model, token_budget
     from posttrain.rollout import SamplingParams, default_backend, generate
-    from verifiers.runner import VerifierPool
+    from posttrain.verifiers.runner import VerifierPool
 
     cfg: GRPOConfig = res.stage_cfg
     check_config(cfg)

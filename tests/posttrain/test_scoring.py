@@ -7,8 +7,8 @@ import torch
 from posttrain.scoring import (GoldScorer, RewardModelScorer, ScoreResult, VerifierScorer, WeightedScorer,
                                left_pad, reward_forward)
 from posttrain.tasks import summarize
-from verifiers.base import Verdict, Verifier
-from verifiers.runner import VerifierPool
+from posttrain.verifiers.base import Verdict, Verifier
+from posttrain.verifiers.runner import VerifierPool
 
 
 class Hangs(Verifier):

@@ -1,4 +1,4 @@
-"""Tests for verifiers.code_sandbox: correctness, integrity against hostile programs, containment.
+"""Tests for posttrain.verifiers.code_sandbox: correctness, integrity against hostile programs, containment.
 
 Every hostile program runs under the sandbox's own (small) limits. Runs in every mode
 this machine supports: bwrap, rlimits with namespaces (root + unshare), plain rlimits.
@@ -16,10 +16,10 @@ import uuid
 
 import pytest
 
-from verifiers import code_sandbox as cs
-from verifiers.code_sandbox import sandbox as sandbox_module
-from verifiers.base import AuditProblem
-from verifiers.code_sandbox import CodeVerifier, extract_code, measure_overhead, sandbox_mode
+from posttrain.verifiers import code_sandbox as cs
+from posttrain.verifiers.code_sandbox import sandbox as sandbox_module
+from posttrain.verifiers.base import AuditProblem
+from posttrain.verifiers.code_sandbox import CodeVerifier, extract_code, measure_overhead, sandbox_mode
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 LIMITS = dict(time_limit_s=1.5, memory_mb=160, max_processes=12, max_file_mb=2, tmpfs_mb=8)
@@ -399,9 +399,10 @@ def test_works_for_a_non_root_caller():
                 os.chmod(os.path.join(root, name), 0o644)
         script = textwrap.dedent(f"""\
             import importlib, json, sys, types, warnings
-            pkg = types.ModuleType('verifiers'); pkg.__path__ = [{os.path.join(base, 'verifiers')!r}]
-            sys.modules['verifiers'] = pkg
-            cs = importlib.import_module('verifiers.code_sandbox')
+            top = types.ModuleType('posttrain'); top.__path__ = []
+            pkg = types.ModuleType('posttrain.verifiers'); pkg.__path__ = [{os.path.join(base, 'verifiers')!r}]
+            sys.modules['posttrain'] = top; sys.modules['posttrain.verifiers'] = pkg
+            cs = importlib.import_module('posttrain.verifiers.code_sandbox')
             v = cs.CodeVerifier(time_limit_s=1.5, memory_mb=160, max_processes=8)
             ref = {{"tests": ["assert f(2) == 4"], "entry_point": "f"}}
             bomb = "import os\\nwhile True:\\n    try:\\n        os.fork()\\n    except OSError:\\n        pass\\n"

@@ -7,8 +7,8 @@ import pytest
 
 pytest.importorskip("reasoning_gym")
 
-from verifiers.registry import get_verifier  # noqa: E402
-from verifiers.runner import VerifierPool  # noqa: E402
+from posttrain.verifiers.registry import get_verifier  # noqa: E402
+from posttrain.verifiers.runner import VerifierPool  # noqa: E402
 
 DATASETS = ["basic_arithmetic", "chain_sum", "leg_counting", "spell_backward", "knights_knaves", "countdown"]
 

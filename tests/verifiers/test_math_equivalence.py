@@ -3,7 +3,7 @@ from fractions import Fraction
 
 import pytest
 
-from verifiers.math_answer import MathVerifier, audit_problems
+from posttrain.verifiers.math_answer import MathVerifier, audit_problems
 
 V = MathVerifier()
 
@@ -162,7 +162,7 @@ def test_require_simplified_rejects_unevaluated_arithmetic():
 
 
 def test_strict_mode_is_reachable_by_name_and_the_old_option_still_works():
-    from verifiers import get_verifier
+    from posttrain.verifiers import get_verifier
 
     assert get_verifier("math", require_simplified=True).check(r"\boxed{2+3}", "5").reason == "unevaluated expression"
     assert get_verifier("math").check(r"\boxed{2+3}", "5").score == 1.0
@@ -194,8 +194,8 @@ def test_identities_are_tested_at_negative_and_non_integer_points(pred, gold, ex
 
 
 def test_probe_points_mix_signs_and_are_never_integers():
-    from verifiers.math_answer.equivalence import _random_points
-    from verifiers.math_answer.guards import _sp
+    from posttrain.verifiers.math_answer.equivalence import _random_points
+    from posttrain.verifiers.math_answer.guards import _sp
 
     x, y = _sp().symbols("x y")
     points = _random_points([x, y], 16)

@@ -1,7 +1,7 @@
 """Extraction policy of the math verifier: each rule, priorities, last occurrence, scopes, hedges, retractions."""
 import pytest
 
-from verifiers.math_answer import MathVerifier, extract_answer
+from posttrain.verifiers.math_answer import MathVerifier, extract_answer
 
 V = MathVerifier()
 
@@ -202,7 +202,7 @@ def test_last_number_rule_reads_plain_expressions(text, gold, score):
 
 
 def test_prose_bang_rules_in_extraction():
-    from verifiers.math_answer.extract import _prose_bangs
+    from posttrain.verifiers.math_answer.extract import _prose_bangs
 
     assert _prose_bangs("4!") == "4!"
     assert _prose_bangs("(n+1)!").strip() == "(n+1)!"

@@ -1,7 +1,7 @@
 """Normalisation of extracted answers: each LaTeX / unicode / number-format rule, with a counter-case."""
 import pytest
 
-from verifiers.math_answer import MathVerifier, clean_answer
+from posttrain.verifiers.math_answer import MathVerifier, clean_answer
 
 V = MathVerifier()
 

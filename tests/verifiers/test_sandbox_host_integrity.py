@@ -26,9 +26,9 @@ import uuid
 
 import pytest
 
-from verifiers import code_sandbox as cs
-from verifiers.code_sandbox import CodeVerifier, sandbox_mode
-from verifiers.code_sandbox import sandbox as sandbox_module
+from posttrain.verifiers import code_sandbox as cs
+from posttrain.verifiers.code_sandbox import CodeVerifier, sandbox_mode
+from posttrain.verifiers.code_sandbox import sandbox as sandbox_module
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 LIMITS = dict(time_limit_s=1.5, memory_mb=160, max_processes=12, max_file_mb=2, tmpfs_mb=8)
@@ -332,7 +332,7 @@ def test_benign_checks_leave_tmp_alone(options, host):
 
 
 def test_measure_overhead_leaves_host_unchanged(host):
-    from verifiers.code_sandbox import measure_overhead
+    from posttrain.verifiers.code_sandbox import measure_overhead
 
     measure_overhead(n=2)  # warm: the probes run once per process
     watch = host([])
@@ -450,14 +450,14 @@ def test_verdicts_and_cli_name_the_sandbox(capsys):
     if fb is not None:
         assert fb.check("def f(x):\n    return x + 1\n", REF).details["sandbox"] == (
             "fallback" if _has_unshare_fallback() else "fallback (no namespaces)")
-    from verifiers.cli import main
+    from posttrain.verifiers.cli import main
 
     assert main(["list"]) == 0
     out = capsys.readouterr().out
     assert out.splitlines()[0].split() == ["name", "origin", "description"]
     line = [x for x in out.splitlines() if x.startswith("code sandbox: ")]
     assert line and line[0].startswith(f"code sandbox: {v.sandbox} (") and v.isolation in line[0]
-    r = subprocess.run([sys.executable, "-m", "verifiers.cli", "list"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-m", "posttrain.verifiers.cli", "list"], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and f"code sandbox: {v.sandbox}" in r.stdout, r.stderr
 
 
@@ -514,7 +514,7 @@ def test_cleanup_never_follows_links_nor_leaves_its_tree(tmp_path):
 
 @pytest.mark.skipif(not IS_ROOT, reason="the warning is about root's fallback")
 def test_fallback_without_working_namespaces_warns(monkeypatch):
-    from verifiers.code_sandbox import verifier as cv
+    from posttrain.verifiers.code_sandbox import verifier as cv
 
     monkeypatch.setattr(cv, "_probe_unshare", lambda *a, **k: False)
     with pytest.warns(RuntimeWarning, match="neither bubblewrap nor the unshare fallback"):

@@ -4,8 +4,8 @@ import time
 
 import pytest
 
-from verifiers import get_verifier, run_audit
-from verifiers.base import AuditProblem, Verdict, Verifier
+from posttrain.verifiers import get_verifier, run_audit
+from posttrain.verifiers.base import AuditProblem, Verdict, Verifier
 
 PROBLEMS = [AuditProblem(prompt=f"What is {a} times 7?", reference=str(7 * a), gold=f"{a} * 7 = {7 * a}. The answer is {7 * a}.")
             for a in (3, 5, 11, 13, 17)]
@@ -71,7 +71,7 @@ MATH_CATEGORY_LABELS = (
 
 
 def test_math_audit_covers_every_answer_category():
-    from verifiers.math_answer.verifier import _GENERATORS
+    from posttrain.verifiers.math_answer.verifier import _GENERATORS
 
     v = get_verifier("math")
     n = 2 * len(_GENERATORS)

@@ -1,4 +1,4 @@
-"""verifiers.cli: list, audit, score; bad files and rows are one line naming file, line and field (exit 2)."""
+"""posttrain.verifiers.cli: list, audit, score; bad files and rows are one line naming file, line and field (exit 2)."""
 import json
 import os
 import subprocess
@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from verifiers.cli import main
+from posttrain.verifiers.cli import main
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -112,5 +112,5 @@ def test_usage_errors(capsys):
 
 
 def test_runs_as_a_module():
-    proc = subprocess.run([sys.executable, "-m", "verifiers.cli", "list"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    proc = subprocess.run([sys.executable, "-m", "posttrain.verifiers.cli", "list"], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0 and "math" in proc.stdout

@@ -3,9 +3,9 @@ import math
 
 import pytest
 
-from verifiers import VerifierPool, WeightedVerifier, combine, get_verifier, score_batch
-from verifiers.base import Verdict, Verifier
-from verifiers.format import FormatVerifier, LengthVerifier
+from posttrain.verifiers import VerifierPool, WeightedVerifier, combine, get_verifier, score_batch
+from posttrain.verifiers.base import Verdict, Verifier
+from posttrain.verifiers.format import FormatVerifier, LengthVerifier
 
 
 class Fixed(Verifier):

@@ -4,8 +4,8 @@ import re
 import subprocess
 import sys
 
-from verifiers import combine, get_verifier, run_audit, score_batch
-from verifiers.registry import FunctionVerifier
+from posttrain.verifiers import combine, get_verifier, run_audit, score_batch
+from posttrain.verifiers.registry import FunctionVerifier
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 README = os.path.join(REPO, "verifiers", "README.md")
@@ -50,7 +50,7 @@ def test_example_usage_snippet_and_function():
 
 
 def test_example_cli_audit():
-    proc = subprocess.run([sys.executable, "-m", "verifiers.cli", "audit", f"{EXAMPLE}:MultipleChoiceVerifier",
+    proc = subprocess.run([sys.executable, "-m", "posttrain.verifiers.cli", "audit", f"{EXAMPLE}:MultipleChoiceVerifier",
                            "--n", "10", "--workers", "1"], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "-> OK" in proc.stdout

@@ -1,4 +1,5 @@
-"""The verifier layer imports and runs with torch and posttrain unavailable; sympy loads only when needed."""
+"""The verifier layer (posttrain.verifiers) imports and runs with torch and the rest of posttrain unavailable; sympy
+loads only when needed."""
 import os
 import subprocess
 import sys
@@ -9,17 +10,18 @@ SCRIPT = r'''
 import sys
 
 class Block:
-    """Make torch, transformers and posttrain unimportable."""
+    """Make torch, transformers, numpy and every posttrain module outside posttrain.verifiers unimportable."""
     def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in ("torch", "transformers", "posttrain", "numpy"):
+        ours = name == "posttrain" or name == "posttrain.verifiers" or name.startswith("posttrain.verifiers.")
+        if name.split(".")[0] in ("torch", "transformers", "numpy") or (name.startswith("posttrain") and not ours):
             raise ImportError(f"blocked: {name}")
         return None
 
 sys.meta_path.insert(0, Block())
-import verifiers, verifiers.registry, verifiers.runner, verifiers.audit, verifiers.cli, verifiers.format, verifiers.combine
-import verifiers.math_answer
+import posttrain.verifiers, posttrain.verifiers.registry, posttrain.verifiers.runner, posttrain.verifiers.audit, posttrain.verifiers.cli, posttrain.verifiers.format, posttrain.verifiers.combine
+import posttrain.verifiers.math_answer
 print("sympy-after-import", "sympy" in sys.modules)
-from verifiers import get_verifier, score_batch
+from posttrain.verifiers import get_verifier, score_batch
 v = get_verifier("0.9*math+0.1*format")
 print("scores", [o.score for o in score_batch(v, [r"\boxed{x^2}", "1"], ["x**2", "2"], workers=1)])
 print("sympy-after-use", "sympy" in sys.modules)

@@ -4,13 +4,13 @@ import textwrap
 
 import pytest
 
-from verifiers import FunctionVerifier, VerifierPool, WeightedVerifier, get_verifier, list_verifiers, score_batch
-from verifiers import registry
-from verifiers.base import Verdict
-from verifiers.math_answer import MathVerifier
+from posttrain.verifiers import FunctionVerifier, VerifierPool, WeightedVerifier, get_verifier, list_verifiers, score_batch
+from posttrain.verifiers import registry
+from posttrain.verifiers.base import Verdict
+from posttrain.verifiers.math_answer import MathVerifier
 
 PLUGIN = textwrap.dedent('''
-    from verifiers.base import Verdict, Verifier
+    from posttrain.verifiers.base import Verdict, Verifier
 
     class Shouty(Verifier):
         """Scores 1 when the completion is upper case."""
@@ -78,10 +78,10 @@ def test_list_verifiers_reports_every_builtin():
 
 
 def test_broken_builtin_is_reported_not_raised(monkeypatch):
-    monkeypatch.setitem(registry.BUILTINS, "broken", "verifiers.no_such_module:Thing")
+    monkeypatch.setitem(registry.BUILTINS, "broken", "posttrain.verifiers.no_such_module:Thing")
     rows = {name: desc for name, desc, _ in list_verifiers()}
-    assert rows["broken"].startswith("unavailable: cannot import verifiers.no_such_module:Thing (ModuleNotFoundError")
-    with pytest.raises(ImportError, match="built-in verifier 'broken' is unavailable: cannot import verifiers.no_such_module"):
+    assert rows["broken"].startswith("unavailable: cannot import posttrain.verifiers.no_such_module:Thing (ModuleNotFoundError")
+    with pytest.raises(ImportError, match="built-in verifier 'broken' is unavailable: cannot import posttrain.verifiers.no_such_module"):
         get_verifier("broken")
 
 
@@ -184,6 +184,6 @@ def test_function_verifier_results():
 
 def test_name_defaults_to_the_spec_name(tmp_path):
     path = tmp_path / "unnamed.py"
-    path.write_text("from verifiers.base import Verifier, Verdict\n"
+    path.write_text("from posttrain.verifiers.base import Verifier, Verdict\n"
                     "class Anon(Verifier):\n    def check(self, c, r):\n        return Verdict(1.0, 'ok')\n")
     assert get_verifier(f"{path}:Anon").name == "Anon"

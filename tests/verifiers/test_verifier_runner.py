@@ -8,8 +8,8 @@ import time
 
 import pytest
 
-from verifiers import FunctionVerifier, VerifierError, VerifierPool, get_verifier, score_batch, score_one
-from verifiers.base import Verdict, Verifier
+from posttrain.verifiers import FunctionVerifier, VerifierError, VerifierPool, get_verifier, score_batch, score_one
+from posttrain.verifiers.base import Verdict, Verifier
 
 LIMIT = 0.5  # seconds per check in these tests
 
@@ -199,7 +199,7 @@ def test_input_validation():
 
 ORPHAN_SCRIPT = r'''
 import os, sys
-from verifiers import VerifierPool, get_verifier
+from posttrain.verifiers import VerifierPool, get_verifier
 pool = VerifierPool(workers=1, timeout_s=10)
 print(pool.score(get_verifier("math"), [r"\boxed{1}"], ["1"])[0].score)
 print(pool._pool[0].proc.pid, flush=True)

@@ -2,7 +2,7 @@
 
     CodeVerifier().check(completion, {"tests": "def check(candidate): ...", "entry_point": "f"})
     CodeVerifier(partial_credit=True).check(completion, {"tests": ["assert f(1) == 2", ...]})
-    python -c "from verifiers.code_sandbox import measure_overhead; print(measure_overhead())"
+    python -c "from posttrain.verifiers.code_sandbox import measure_overhead; print(measure_overhead())"
 
 Reference format
 ----------------
@@ -63,7 +63,7 @@ call fails with a clear message); return values must be plain data.
 Sandbox modes (``CodeVerifier().mode`` / ``.sandbox``, ``sandbox_mode()``, ``details["mode"]`` / ``["sandbox"]``)
 --------------------------------------------------------------------------------------------------------------
 ``Verdict.details["sandbox"]``, ``CodeVerifier().sandbox`` and the last line of
-``python -m verifiers.cli list`` (``posttrain verifiers``) say which one ran: "bubblewrap",
+``python -m posttrain.verifiers.cli list`` (``posttrain verifiers``) say which one ran: "bubblewrap",
 "fallback" or "fallback (no namespaces)"; ``details["isolation"]`` says it in words.
 
 - ``"bwrap"`` / "bubblewrap" (bubblewrap present and user namespaces allowed): new user, pid,
@@ -194,9 +194,9 @@ Layout (this package)
 """
 from __future__ import annotations
 
-from verifiers.code_sandbox.audit import _PROBLEMS  # noqa: F401  (tests read it from here)
-from verifiers.code_sandbox.extract import extract_code
-from verifiers.code_sandbox.sandbox import _UID_BASE, _UID_SLOTS, SandboxMode, sandbox_mode  # noqa: F401
-from verifiers.code_sandbox.verifier import CodeVerifier, measure_overhead
+from posttrain.verifiers.code_sandbox.audit import _PROBLEMS  # noqa: F401  (tests read it from here)
+from posttrain.verifiers.code_sandbox.extract import extract_code
+from posttrain.verifiers.code_sandbox.sandbox import _UID_BASE, _UID_SLOTS, SandboxMode, sandbox_mode  # noqa: F401
+from posttrain.verifiers.code_sandbox.verifier import CodeVerifier, measure_overhead
 
 __all__ = ["CodeVerifier", "sandbox_mode", "measure_overhead", "extract_code"]

@@ -17,11 +17,11 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Literal, Sequence
 
-from verifiers.base import AuditProblem, Verdict, Verifier
-from verifiers.code_sandbox import sandbox as _sandbox  # _UIDS via the module: a forked child rebinds it
-from verifiers.code_sandbox.audit import _ADVERSARIAL, _PROBLEMS
-from verifiers.code_sandbox.extract import _IMPORT_LINE, _Task, _defines, _parse_reference, extract_code
-from verifiers.code_sandbox.sandbox import (
+from posttrain.verifiers.base import AuditProblem, Verdict, Verifier
+from posttrain.verifiers.code_sandbox import sandbox as _sandbox  # _UIDS via the module: a forked child rebinds it
+from posttrain.verifiers.code_sandbox.audit import _ADVERSARIAL, _PROBLEMS
+from posttrain.verifiers.code_sandbox.extract import _IMPORT_LINE, _Task, _defines, _parse_reference, extract_code
+from posttrain.verifiers.code_sandbox.sandbox import (
     _HARNESS, _SYSTEM_PATH, _UID_SLOTS, SandboxMode, _as_user, _bwrap_argv, _bwrap_path, _communicate,
     _count_tasks, _drain_tail, _find_interpreter, _is_root, _kill_uid, _make_workdir, _probe_bwrap, _probe_unshare,
     _remove_uid_files, _remove_workdir, _Run, _unshare_argv, _unshare_path, _view_args, _wait_exit_unreaped,

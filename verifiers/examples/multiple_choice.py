@@ -1,7 +1,7 @@
 """Worked example for "Writing a verifier" (verifiers/README.md): a multiple-choice verifier.
 
-    python -m verifiers.cli audit verifiers/examples/multiple_choice.py:MultipleChoiceVerifier
-    python -m verifiers.cli score verifiers/examples/multiple_choice.py:MultipleChoiceVerifier rows.jsonl
+    python -m posttrain.verifiers.cli audit verifiers/examples/multiple_choice.py:MultipleChoiceVerifier
+    python -m posttrain.verifiers.cli score verifiers/examples/multiple_choice.py:MultipleChoiceVerifier rows.jsonl
 
 Reference: one letter "A".."E". The model's choice is the option letter ("C" or "(C)") in the
 last sentence that names one; a sentence naming several different letters scores 0.
@@ -11,7 +11,7 @@ from __future__ import annotations
 import random
 import re
 
-from verifiers.base import AuditProblem, Verdict, Verifier
+from posttrain.verifiers.base import AuditProblem, Verdict, Verifier
 
 LETTER = re.compile(r"(?<![A-Za-z0-9])\(?([A-E])\)?(?![A-Za-z0-9])")
 SENTENCE_END = re.compile(r"[.!?\n]+")

@@ -194,16 +194,16 @@ Layout (this package; the policy above is the reference the modules point to):
 """
 from __future__ import annotations
 
-from verifiers.math_answer.extract import Extraction, extract_answer
-from verifiers.math_answer.extract import _match_brace  # noqa: F401  (verifiers/format.py imports it from here)
-from verifiers.math_answer.guards import (
+from posttrain.verifiers.math_answer.extract import Extraction, extract_answer
+from posttrain.verifiers.math_answer.extract import _match_brace  # noqa: F401  (verifiers/format.py imports it from here)
+from posttrain.verifiers.math_answer.guards import (
     DEFAULT_BUDGET, MAX_ANSWER_CHARS, MAX_DIGITS, MAX_FACTORIAL, MAX_ITEMS, MAX_PM, Unparseable,
 )
-from verifiers.math_answer.normalize import clean_answer, parse_answer_text, tokenize
-from verifiers.math_answer.values import (
+from posttrain.verifiers.math_answer.normalize import clean_answer, parse_answer_text, tokenize
+from posttrain.verifiers.math_answer.values import (
     Gold, Interval, IntervalUnion, Matrix, Relation, Scalar, Seq, Text, build_value, parse_gold,
 )
-from verifiers.math_answer.verifier import MathVerifier, audit_problems
+from posttrain.verifiers.math_answer.verifier import MathVerifier, audit_problems
 
 __all__ = [
     "MathVerifier", "audit_problems", "extract_answer", "Extraction", "clean_answer", "tokenize",

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 from fractions import Fraction
 from typing import Any
 
-from verifiers.math_answer.guards import _sp
-from verifiers.math_answer.values import (
+from posttrain.verifiers.math_answer.guards import _sp
+from posttrain.verifiers.math_answer.values import (
     Interval, IntervalUnion, Matrix, Relation, Scalar, Seq, Text, _free_symbols_of,
 )
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from verifiers.math_answer.guards import MAX_ITEMS
+from posttrain.verifiers.math_answer.guards import MAX_ITEMS
 
 
 # --------------------------------------------------------------------------------------

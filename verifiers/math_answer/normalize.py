@@ -7,8 +7,8 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from verifiers.math_answer.extract import _match_brace
-from verifiers.math_answer.guards import MAX_ITEMS, Unparseable
+from posttrain.verifiers.math_answer.extract import _match_brace
+from posttrain.verifiers.math_answer.guards import MAX_ITEMS, Unparseable
 
 
 # --------------------------------------------------------------------------------------

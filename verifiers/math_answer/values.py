@@ -10,11 +10,11 @@ from fractions import Fraction
 from functools import lru_cache
 from typing import Any
 
-from verifiers.math_answer.extract import _find_boxed
-from verifiers.math_answer.guards import (
+from posttrain.verifiers.math_answer.extract import _find_boxed
+from posttrain.verifiers.math_answer.guards import (
     DEFAULT_BUDGET, MAX_DIGITS, MAX_FACTORIAL, MAX_PM, Unparseable, _BudgetExceeded, _CallBudget, _sp,
 )
-from verifiers.math_answer.normalize import (
+from posttrain.verifiers.math_answer.normalize import (
     _CONNECTIVES, _CONST_WORDS, _FUNCS, _number_words, _unwrap_text_commands, clean_answer, parse_answer_text,
 )
 

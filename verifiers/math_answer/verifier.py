@@ -10,12 +10,12 @@ import re
 from fractions import Fraction
 from typing import Any
 
-from verifiers.base import AuditProblem, Verdict, Verifier
-from verifiers.math_answer.equivalence import _Cmp, _Outcome
-from verifiers.math_answer.extract import Extraction, _find_last_numbers, _last_group, extract_answer
-from verifiers.math_answer.guards import DEFAULT_BUDGET, MAX_ANSWER_CHARS, Unparseable, _BudgetExceeded, _CallBudget, _sp
-from verifiers.math_answer.normalize import clean_answer, parse_answer_text
-from verifiers.math_answer.values import (
+from posttrain.verifiers.base import AuditProblem, Verdict, Verifier
+from posttrain.verifiers.math_answer.equivalence import _Cmp, _Outcome
+from posttrain.verifiers.math_answer.extract import Extraction, _find_last_numbers, _last_group, extract_answer
+from posttrain.verifiers.math_answer.guards import DEFAULT_BUDGET, MAX_ANSWER_CHARS, Unparseable, _BudgetExceeded, _CallBudget, _sp
+from posttrain.verifiers.math_answer.normalize import clean_answer, parse_answer_text
+from posttrain.verifiers.math_answer.values import (
     Gold, Matrix, Relation, Scalar, Seq, Text, _fmt_frac, _free_symbols_of, _safe_str, _text_key, build_value,
     parse_gold,
 )

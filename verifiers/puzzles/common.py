@@ -12,7 +12,7 @@ import random
 import re
 from typing import Any, Callable, Literal
 
-from verifiers.base import AuditProblem, Verdict, Verifier
+from posttrain.verifiers.base import AuditProblem, Verdict, Verifier
 
 Split = Literal["train", "test"]
 

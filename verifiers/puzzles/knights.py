@@ -53,8 +53,8 @@ import re
 from functools import lru_cache
 from typing import Any
 
-from verifiers.base import AuditProblem, Verdict
-from verifiers.puzzles.common import (PuzzleVerifier, Split, check_generate_args, generate_unique, make_rng,
+from posttrain.verifiers.base import AuditProblem, Verdict
+from posttrain.verifiers.puzzles.common import (PuzzleVerifier, Split, check_generate_args, generate_unique, make_rng,
                                       require, strip_markup)
 
 FAMILY = "knights_knaves"

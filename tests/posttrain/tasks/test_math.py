@@ -142,7 +142,7 @@ def test_every_column_is_right(train, eval_set):
 
 
 def test_the_verifier_scores_every_gold_solution_1(train, eval_set):
-    from verifiers.registry import get_verifier
+    from posttrain.verifiers.registry import get_verifier
 
     verifier = get_verifier("math")
     for row in train + eval_set:

@@ -137,7 +137,7 @@ def test_a_verifier_that_raises_is_reported_and_scored_zero_or_stops(sft_model, 
 
 def test_verifier_scorer_on_error_zero_scores_the_others():
     from posttrain.scoring import VerifierScorer
-    from verifiers.runner import VerifierError, VerifierPool
+    from posttrain.verifiers.runner import VerifierError, VerifierPool
 
     texts = [f"completion {i}" for i in range(12)] + ["<answer>1</answer>"]
     with VerifierPool(workers=1) as pool:

@@ -5,7 +5,7 @@ import pytest
 from posttrain import tasks
 from posttrain.data import validate_rows
 from posttrain.tasks import code, countdown
-from verifiers.registry import get_verifier
+from posttrain.verifiers.registry import get_verifier
 
 MODULES = {"tiny-countdown": countdown, "tiny-code": code}
 
