@@ -19,6 +19,9 @@ process and under `accelerate launch` (DDP/FSDP/DeepSpeed): the Accelerator deci
   averaged over micro-batches and processes, or weighted by each micro-batch's share (`weights`).
 - `batch_indices`: the data order as a pure function of (seed, step), so resuming at a
   step reproduces the exact batches without saving a sampler.
+- `stream_seed(seed, purpose, *indices)`: the seed of one named stream of randomness (a step's samples, a
+  pass's row order, ...), a stable hash of its name and indices: every stream a trainer draws from comes
+  from here, so two purposes never share one and none depends on a hand-picked prime.
 - `MetricsLog`: one JSON line per logged step in metrics.jsonl plus a console line.
 - `Checkpointer`: `checkpoints/step-NNNNNN/` written to a temp dir then renamed (atomic);
   it holds model, optimizer, scheduler, RNG states and the data position; `resume_run` loads
@@ -26,6 +29,7 @@ process and under `accelerate launch` (DDP/FSDP/DeepSpeed): the Accelerator deci
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -367,6 +371,19 @@ def batch_indices(n: int, batch_size: int, seed: int, step: int, rank: int = 0, 
     perm = np.random.default_rng([seed, epoch]).permutation(n)
     idx = perm[i * batch_size:(i + 1) * batch_size]
     return [int(j) for j in idx[rank::world]]
+
+
+def stream_seed(seed: int, purpose: str, *indices: int) -> int:
+    """The 63-bit seed of the stream `purpose` (e.g. "grpo/sample") at `indices` (step, round, pass, ...) of a run
+    seeded `seed`: blake2b of a canonical encoding of the three (not Python's `hash`, which is salted per process),
+    so it is the same in every process and on every machine, and distinct (purpose, indices) give independent
+    seeds. Non-negative and below 2**63: good for `random.Random`, `torch.Generator.manual_seed`,
+    `np.random.default_rng`, `SamplingParams.seed` and `batch_indices`. (A run's data order, `batch_indices(...,
+    seed, step)`, and PPO's epoch shuffles seed numpy with a list of integers, which numpy hashes itself.)"""
+    if not purpose or any(isinstance(x, bool) or not isinstance(x, (int, np.integer)) for x in (seed, *indices)):
+        raise ValueError(f"stream_seed needs a purpose and integer seed / indices, got {purpose!r}, {seed!r}, {indices!r}")
+    key = json.dumps([purpose, int(seed), *(int(i) for i in indices)], separators=(",", ":")).encode()
+    return int.from_bytes(hashlib.blake2b(key, digest_size=8).digest(), "big") >> 1
 
 
 

@@ -351,12 +351,12 @@ def train(res: Resolved, ensure) -> Path:
             with loop.naming_checkpoint(ckpt):
                 # ---- rollout: the student's samples (GKD's lambda: else the teacher's), process r taking
                 # positions r, r + W, ... of the step's global prompt batch
-                on_policy = random.Random(cfg.seed * 1_000_003 + step).random() < cfg.student_fraction
+                on_policy = random.Random(loop.stream_seed(cfg.seed, "distill/mix", step)).random() < cfg.student_fraction
                 idx = loop.batch_indices(len(problems), P, cfg.seed, step)
                 mine = sharding.positions(P, rank, world)
                 ps = [problems[idx[i]] for i in mine]
                 params = SamplingParams(n=K, max_new_tokens=cfg.max_new_tokens, temperature=cfg.temperature,
-                                        seed=cfg.seed * 1_000_003 + step * 31)
+                                        seed=loop.stream_seed(cfg.seed, "distill/sample", step))
                 t0 = time.time()
                 out = generate(student if on_policy else teacher, tokenizer, [p.prompt_ids for p in ps], params,
                                prompt_keys=[p.key for p in ps]) if ps else []

@@ -194,9 +194,14 @@ class Pool:
     """Pairs and their precomputed reference log-probs (None: reference=live); online pools replace the offline one."""
     pairs: list[TokenizedPair]
     ref: dict[str, torch.Tensor] | None
-    start: int = 0  # the step it was built at: its batches are loop.batch_indices(..., seed + gen, step - start)
+    start: int = 0  # the step it was built at: its batches are loop.batch_indices(..., order_seed, step - start)
     gen: int = 0  # the regeneration index; 0: the offline pairs
     labels: list[bool] | None = None  # KTO: per row, desirable or not (its pairs are (completion, KL partner))
+
+    def order_seed(self, seed: int) -> int:
+        """The seed of the pool's batch order: the run's own for the offline pairs (the order the precomputed
+        reference covers), a stream per regeneration for online pools."""
+        return seed if self.gen == 0 else loop.stream_seed(seed, "dpo/online-batch", self.gen)
 
 
 def micro_batch_loss(cfg: DPOConfig, model, ref_model, pool: Pool, idx: list[int], pad_id: int,
@@ -312,12 +317,12 @@ def refresh_pool(step: int, cfg: DPOConfig, policy, tokenizer, max_length: int, 
     from posttrain.rollout.records import save_step_rollouts
 
     gen = step // cfg.online_every
-    idx = random.Random(f"online:{cfg.seed}:{gen}").sample(range(len(rows)), min(cfg.online_prompts, len(rows)))
+    idx = random.Random(loop.stream_seed(cfg.seed, "dpo/online-prompts", gen)).sample(range(len(rows)), min(cfg.online_prompts, len(rows)))
     samples = [] if save_to is not None and cfg.save_rollouts_every and step % cfg.save_rollouts_every == 0 else None
     new_rows, st = preferences.sample_pairs(
         policy, tokenizer, [rows[i] for i in idx], labeler, prompt_keys=idx, samples_per_prompt=cfg.online_samples,
         pairs_per_prompt=cfg.online_pairs_per_prompt, temperature=cfg.online_temperature,
-        max_new_tokens=cfg.max_new_tokens, seed=cfg.seed * 1_000_003 + gen, strategy=f"online-{cfg.online_labeler}",
+        max_new_tokens=cfg.max_new_tokens, seed=loop.stream_seed(cfg.seed, "dpo/online-sample", gen), strategy=f"online-{cfg.online_labeler}",
         rollouts_out=samples)
     if samples:  # rollout inspection: every sample with its label and its role in the pairs
         metrics.log_table("rollouts", save_step_rollouts(samples, save_to, step), step)
@@ -356,7 +361,7 @@ def evaluate(step: int, cfg: DPOConfig, task_name: str, model, policy, tokenizer
     if baseline:
         m.update(evaluation.policy_eval(task_name, policy, ref.model_for(policy), tokenizer,
                                         data.gold_rows[: cfg.eval_rows], baseline, max_new_tokens=cfg.max_new_tokens,
-                                        proxy=proxy, seed=cfg.seed + 7))
+                                        proxy=proxy, seed=loop.stream_seed(cfg.seed, "eval/sample")))
     metrics.log(step, m, console=False)
     shown = {k: m[k] for k in ("eval/rewards/accuracy", "gold/win_rate", "gold/reward", "proxy/reward", "kl") if k in m}
     say(f"[dpo] step {step} eval: " + ", ".join(f"{k} {v:.3f}" for k, v in shown.items()))
@@ -438,7 +443,7 @@ def train(res: Resolved, ensure) -> Path:
             pool = refresh_pool(step, cfg, policy, tokenizer, res.model.max_length, data.online_rows, labeler, ref,
                                 budget, metrics, say, run_dir if main else None)
         # ---- batch: this process's share of the step's pairs (indices into the pool), in micro-batches
-        idx = loop.batch_indices(len(pool.pairs), cfg.batch_size, cfg.seed + pool.gen, step - pool.start,
+        idx = loop.batch_indices(len(pool.pairs), cfg.batch_size, pool.order_seed(cfg.seed), step - pool.start,
                                  accelerator.process_index, accelerator.num_processes)[:per_process]
         # ---- update: one forward over chosen and rejected per micro-batch, accumulated into one optimizer step
         saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
@@ -471,7 +476,7 @@ def train(res: Resolved, ensure) -> Path:
         if cfg.final_eval_rows and baseline:
             report.update(evaluation.compare_with_sft(
                 "dpo", res.task.name, policy, ref.model_for(policy), tokenizer, data.gold_rows[: cfg.final_eval_rows],
-                baseline, max_new_tokens=cfg.max_new_tokens, proxy=proxy, seed=cfg.seed + 7, say=say))
+                baseline, max_new_tokens=cfg.max_new_tokens, proxy=proxy, seed=loop.stream_seed(cfg.seed, "eval/sample"), say=say))
         loop.write_json(run_dir / "eval.json", report)
         metrics.close(report)
     metrics.close()

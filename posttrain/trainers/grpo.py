@@ -310,6 +310,12 @@ def load_problems(res: Resolved, cfg: GRPOConfig):
 
 
 # ----------------------------------------------------------------------------- rollout and score
+def round_order_seed(seed: int, rnd: int) -> int:
+    """The seed of `loop.batch_indices` for sampling round `rnd` of a step: the run's data order for the first,
+    a stream of its own for each resampling round (zero_variance=resample)."""
+    return seed if rnd == 0 else loop.stream_seed(seed, "grpo/resample-batch", rnd)
+
+
 @dataclass
 class Curriculum:
     """Detail 14: the pass-rate table over the training problems and the weighted draw of a round's prompts."""
@@ -321,12 +327,12 @@ class Curriculum:
     def fresh(cls, n: int) -> Curriculum:
         return cls(torch.zeros(n), torch.zeros(n, dtype=torch.bool))
 
-    def pick(self, cfg: GRPOConfig, n: int, seed: int, step: int, exclude: list[int]) -> list[int]:
-        """`n` problem indices, drawn without replacement by weight (seeded by (seed, step): resumable); the
-        problems already drawn this step (`exclude`) are left out."""
+    def pick(self, cfg: GRPOConfig, n: int, seed: int, exclude: list[int]) -> list[int]:
+        """`n` problem indices, drawn without replacement by weight (`seed`: the round's stream, a function of
+        (seed, step, round): resumable); the problems already drawn this step (`exclude`) are left out."""
         w = curriculum_weights(self.rates, self.seen, cfg.group_size, floor=cfg.curriculum_floor)
         w[torch.as_tensor(exclude, dtype=torch.long)] = 0.0
-        gen = torch.Generator().manual_seed(seed * 1_000_003 + step)
+        gen = torch.Generator().manual_seed(seed)
         return torch.multinomial(w, min(n, int((w > 0).sum())), replacement=False, generator=gen).tolist()
 
     def update(self, cfg: GRPOConfig, index: list[int], passed: list[bool]) -> None:
@@ -473,7 +479,7 @@ def update(cfg: GRPOConfig, accelerator, model, optimizer, scheduler, rows: dict
     usable = (rows["loss_mask"].sum(-1) > 0).nonzero().flatten().cpu()  # rows with at least one loss token
     upd: dict[str, list[float]] = collections.defaultdict(list)
     for epoch in range(cfg.mu if len(usable) else 0):
-        gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step * 101 + epoch)
+        gen = torch.Generator().manual_seed(loop.stream_seed(cfg.seed, "grpo/minibatch", step, epoch))
         order = usable[torch.randperm(len(usable), generator=gen)]
         for i, mb_idx in enumerate(torch.tensor_split(order, min(cfg.minibatches, len(usable)))):
             mbs = sharding.micro_batches(rows, mb_idx.to(accelerator.device), cfg.micro_batch_size, cfg.aggregation,
@@ -682,14 +688,16 @@ def train(res: Resolved, ensure) -> Path:
                 # batch; DAPO dynamic sampling (zero_variance=resample) adds rounds until P groups are informative
                 groups, scored, first_round, drawn = [], 0, 0, []
                 for rnd in range(rounds):
-                    idx = loop.batch_indices(len(problems), P, cfg.seed + 7919 * rnd, step) if curriculum is None \
-                        else curriculum.pick(cfg, P, cfg.seed + 7919 * rnd, step, drawn)  # the global batch
+                    # the global batch: the data order (a resampling round: its own order), or the curriculum's draw
+                    idx = loop.batch_indices(len(problems), P, round_order_seed(cfg.seed, rnd), step) \
+                        if curriculum is None else \
+                        curriculum.pick(cfg, P, loop.stream_seed(cfg.seed, "grpo/curriculum", step, rnd), drawn)
                     drawn += idx
                     mine = sharding.positions(P, rank, world)  # this process's positions in it
                     ps = [problems[idx[i]] for i in mine]
                     t0 = time.time()
                     params = SamplingParams(n=K, max_new_tokens=cfg.max_new_tokens, temperature=cfg.temperature,
-                                            top_p=cfg.top_p, seed=cfg.seed * 1_000_003 + step * 31 + rnd)
+                                            top_p=cfg.top_p, seed=loop.stream_seed(cfg.seed, "grpo/sample", step, rnd))
                     out = generate(policy, tokenizer, [p.prompt_ids for p in ps], params,
                                    prompt_keys=[p.key for p in ps]) if ps else []  # none: more processes than prompts
                     # ---- score (in the verifier pool), then gathered: every process holds the round's groups

@@ -425,7 +425,7 @@ def measure_reward_norm(accelerator, m: PPOModels, cfg: PPOConfig, train_rows: l
     """Detail 1: reward statistics of SFT samples of the split's last reward_norm_prompts prompts (checkpointed)."""
     t0, k = time.time(), min(cfg.reward_norm_prompts, len(train_rows))
     _, raw, _ = rollout_and_score(accelerator, m, cfg, train_rows, list(range(len(train_rows) - k, len(train_rows))),
-                                  cfg.seed + 1_000_003)  # (k,)
+                                  loop.stream_seed(cfg.seed, "ppo/reward-norm"))  # (k,)
     norm = {"mean": float(raw.mean()), "std": float(raw.std().clamp(min=1e-6)), "n": k}
     say(f"[ppo] reward normalisation from {k} SFT samples: mean {norm['mean']:.4f}, std {norm['std']:.4f} "
         f"({time.time() - t0:.1f}s)")
@@ -477,7 +477,7 @@ def evaluate(it: int, task_name: str, accelerator, m: PPOModels, rows: list[dict
     if rows:
         pol = accelerator.unwrap_model(m.policy).eval()  # (with LoRA, the reference runs in the policy's mode)
         e = evaluation.policy_eval(task_name, pol, m.reference, m.tokenizer, rows[: cfg.eval_rows], baseline,
-                                   max_new_tokens=cfg.max_new_tokens, proxy=m.proxy, seed=cfg.seed + 7)
+                                   max_new_tokens=cfg.max_new_tokens, proxy=m.proxy, seed=loop.stream_seed(cfg.seed, "eval/sample"))
         metrics.log(it, e, console=False)
         say(f"[ppo] iteration {it} eval: " + ", ".join(f"{k} {v:.3f}" for k, v in e.items()
                                                       if k in ("gold/reward", "gold/win_rate", "proxy/reward", "kl")))
@@ -530,7 +530,7 @@ def train(res: Resolved, ensure) -> Path:
         # ---- rollout (the shared engine; prompts and samples seeded by (seed, iteration)) and score: the batch is
         # global, each process samples and scores its share, then every process holds all of it
         idx = loop.batch_indices(len(train_rows), cfg.rollout_batch_size, cfg.seed, it)
-        rollouts, raw, t = rollout_and_score(accelerator, m, cfg, train_rows, idx, cfg.seed * 100_003 + it)
+        rollouts, raw, t = rollout_and_score(accelerator, m, cfg, train_rows, idx, loop.stream_seed(cfg.seed, "ppo/sample", it))
         ended = torch.tensor([ro.finish_reason != "length" for ro in rollouts])  # (B,)
         scores = shape_scores(raw, ended, cfg, norm)  # (B,) details 1-3
         batch = collate_rollouts(rollouts, m.tokenizer.pad_token_id).to(dev)
@@ -622,7 +622,7 @@ def train(res: Resolved, ensure) -> Path:
         if cfg.final_eval_rows and held_out:
             report.update(evaluation.compare_with_sft(
                 "ppo", res.task.name, pol, m.reference, m.tokenizer, held_out[: cfg.final_eval_rows], baseline,
-                max_new_tokens=cfg.max_new_tokens, proxy=m.proxy, seed=cfg.seed + 7, say=say))
+                max_new_tokens=cfg.max_new_tokens, proxy=m.proxy, seed=loop.stream_seed(cfg.seed, "eval/sample"), say=say))
         loop.write_json(run_dir / "eval.json", report)
         metrics.close(report)
     metrics.close()
