@@ -243,7 +243,7 @@ class _Batch:
         if not at_eos:
             ep.finish = "length" if len(self.turn[b]) >= lim.max_turn_tokens else "max_tokens"
         else:
-            calls = self.env.parse_calls(turn.text)
+            calls = self.env.parse_calls(turn.text, ep)
             if not calls:
                 ep.finish = "answer"
             elif len(ep.turns) >= lim.max_turns:

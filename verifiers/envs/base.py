@@ -235,7 +235,9 @@ class Environment:
             raise ValueError(f"environment {self.name!r}: a problem row needs a non-empty 'prompt' (got {prompt!r})")
         return head + [{"role": "user", "content": prompt}]
 
-    def parse_calls(self, text: str) -> list[ToolCall]:
+    def parse_calls(self, text: str, episode: Episode | None = None) -> list[ToolCall]:
+        """The tool calls of an assistant turn's text (default: `parse_tool_calls`); `episode` is the episode so far
+        (its problem, its earlier turns), for environments whose parsing depends on them."""
         return parse_tool_calls(text)
 
     def respond(self, episode: Episode, results: list[ToolResult]) -> list[dict[str, Any]]:
