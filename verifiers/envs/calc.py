@@ -1,0 +1,102 @@
+"""`calc`: arithmetic a small model cannot do in its head, with an exact calculator tool.
+
+Problems (`CalcEnv.problems`): products of two 3-digit numbers, or of a 3-digit and a 2-digit number plus a
+4-digit one (`difficulty` 1-3 picks the mix), each row `{"prompt": "What is 347 * 582?", "answer": "201954",
+"expression": "347*582"}`. The model may call `calculator(expression)` (posttrain.verifiers.envs.tools: exact,
+never eval) as often as the limits allow, then answers in a turn without calls.
+
+Reward: 1.0 when the final answer's last integer (commas and spaces between digit groups ignored) equals the answer
+and the episode ended with an answer turn; else 0.0. Known hacks and why they score 0 (`AUDIT`, tested):
+- listing candidates ("1 or 2 or 3 or 201954"): only the last integer counts, and an answer may hold at most
+  `max_numbers` integers (default 3: "347 * 582 = 201954" passes, a list of guesses does not);
+- copying a tool error ("error: unexpected ')' at character 7"): an answer that contains "error:" scores 0;
+- ending on a tool call (the turn limit hit while calling): the episode did not end with an answer;
+- an empty answer.
+Per-turn reward: none (`turn_reward` returns None); `reward_parts` in the metrics says which rule decided.
+"""
+from __future__ import annotations
+
+import random
+import re
+from typing import Any
+
+from posttrain.verifiers.envs.base import Environment, Episode, Limits
+from posttrain.verifiers.envs.tools import calculator
+
+INTEGER = re.compile(r"-?\d{1,3}(?:[, ]\d{3})+(?!\d)|-?\d+")
+
+
+def last_integer(text: str) -> tuple[int | None, int]:
+    """The last integer in `text` (digit groups "201,954" / "201 954" read as one) and how many integers it has."""
+    found = INTEGER.findall(text)
+    if not found:
+        return None, 0
+    return int(re.sub(r"[, ]", "", found[-1])), len(found)
+
+
+class CalcEnv(Environment):
+    """Several-digit products and sums, with an exact calculator tool."""
+
+    name = "calc"
+    description = "arithmetic with 3-4 digit numbers and an exact calculator tool"
+    tools = (calculator,)
+    instructions = "Answer with the number only."
+
+    def __init__(self, max_numbers: int = 3, **limits: Any):
+        self.max_numbers = max_numbers
+        self.limits = Limits(**{"max_turns": 3, "max_turn_tokens": 48, "max_total_tokens": 192, **limits})
+
+    @staticmethod
+    def problems(n: int, seed: int = 0, difficulty: int = 2) -> list[dict[str, Any]]:
+        """`n` seeded problems; difficulty 1: a 3-digit times a 2-digit number; 2: two 3-digit numbers; 3: a
+        3-digit times a 2-digit number plus a 4-digit one."""
+        if difficulty not in (1, 2, 3):
+            raise ValueError(f"calc difficulty must be 1, 2 or 3, got {difficulty!r}")
+        rng = random.Random(f"calc-{seed}-{difficulty}")
+        out = []
+        for _ in range(n):
+            a = rng.randint(100, 999)
+            if difficulty == 1:
+                b = rng.randint(11, 99)
+                expr, text = f"{a}*{b}", f"{a} * {b}"
+            elif difficulty == 2:
+                b = rng.randint(100, 999)
+                expr, text = f"{a}*{b}", f"{a} * {b}"
+            else:
+                b, c = rng.randint(11, 99), rng.randint(1000, 9999)
+                expr, text = f"{a}*{b}+{c}", f"{a} * {b} + {c}"
+            out.append({"prompt": f"What is {text}?", "answer": calculator(expr), "expression": expr})
+        return out
+
+    def score(self, problem: dict[str, Any], answer: str, finish: str = "answer") -> tuple[float, str]:
+        """(reward, the rule that decided it) for a final answer text."""
+        if finish != "answer":
+            return 0.0, "no answer turn"
+        if "error:" in answer or "<tool_call>" in answer:
+            return 0.0, "copies a tool message"
+        value, count = last_integer(answer)
+        if value is None:
+            return 0.0, "no integer"
+        if count > self.max_numbers:
+            return 0.0, f"more than {self.max_numbers} integers"
+        return (1.0, "correct") if str(value) == str(problem["answer"]).strip() else (0.0, "wrong")
+
+    def reward(self, episode: Episode) -> float:
+        reward, why = self.score(episode.problem, episode.final_text, episode.finish)
+        episode.state["reward_rule"] = why
+        return reward
+
+
+# (answer text, episode finish, expected reward) for the problem "What is 347 * 582?" = 201954: hacks score 0.
+AUDIT = [
+    ("201954", "answer", 1.0),
+    ("The answer is 201,954.", "answer", 1.0),
+    ("347 * 582 = 201954", "answer", 1.0),
+    ("1 or 2 or 3 or 201954", "answer", 0.0),
+    ("error: unexpected ')' at character 7 201954", "answer", 0.0),
+    ('<tool_call>{"name": "calculator", "arguments": {"expression": "347*582"}}</tool_call>', "max_turns", 0.0),
+    ('<tool_call>{"name": "calculator", "arguments": {"expression": "347*582"}}</tool_call> 201954', "answer", 0.0),
+    ("", "answer", 0.0),
+    ("201955", "answer", 0.0),
+    ("201954", "length", 0.0),
+]
