@@ -128,3 +128,19 @@ def test_every_posttrain_command_in_the_readme_exists():
 
     assert unknown("no-such-command")
     assert not [c for c in sorted(named) if unknown(c)]
+
+
+def test_the_results_summary_quotes_only_current_figures():
+    """Every decimal figure of the README's results summary is in RESULTS.md's current-figures table."""
+    import re
+
+    readme = (REPO / "README.md").read_text()
+    start = readme.index("<!-- results-summary")
+    summary = readme[start:readme.index("\n\n", readme.index("\n- ", start))]
+    results = (REPO / "RESULTS.md").read_text()
+    table = results[results.index("## Current figures"):]
+    table = table[:table.index("\n## ", 1)] if "\n## " in table[1:] else table
+    figures = re.findall(r"\d+\.\d+", summary)
+    assert len(figures) >= 10
+    missing = [f for f in figures if f not in table]
+    assert not missing, f"README results figures not in RESULTS.md's current-figures table: {missing}"
