@@ -65,6 +65,7 @@ TASKS: dict[str, str] = {
     "tiny-countdown": "posttrain.tasks.countdown",
     "tiny-code": "posttrain.tasks.code",
     "word-math": "posttrain.tasks.wordmath",
+    "tiny-calc": "posttrain.tasks.calc",
 }
 
 

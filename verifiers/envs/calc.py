@@ -3,7 +3,8 @@
 Problems (`CalcEnv.problems`): products of two 3-digit numbers, or of a 3-digit and a 2-digit number plus a
 4-digit one (`difficulty` 1-3 picks the mix), each row `{"prompt": "What is 347 * 582?", "answer": "201954",
 "expression": "347*582"}`. The model may call `calculator(expression)` (posttrain.verifiers.envs.tools: exact,
-never eval) as often as the limits allow, then answers in a turn without calls.
+never eval; here with a one-line description, so the system message stays short for a tiny model) as often as the
+limits allow, then answers in a turn without calls.
 
 Reward: 1.0 when the final answer's last integer (commas and spaces between digit groups ignored) equals the answer
 and the episode ended with an answer turn; else 0.0. Known hacks and why they score 0 (`AUDIT`, tested):
@@ -21,7 +22,17 @@ import re
 from typing import Any
 
 from posttrain.verifiers.envs.base import Environment, Episode, Limits
-from posttrain.verifiers.envs.tools import calculator
+from posttrain.verifiers.envs import tools
+
+
+def calculator(expression: str) -> str:
+    """Evaluate an arithmetic expression exactly.
+
+    Args:
+        expression: the expression, e.g. "(12 + 3) * 45"; * multiplies
+    """
+    return tools.calculator(expression)  # the full grammar and limits: posttrain.verifiers.envs.tools
+
 
 INTEGER = re.compile(r"-?\d{1,3}(?:[, ]\d{3})+(?!\d)|-?\d+")
 
@@ -65,7 +76,7 @@ class CalcEnv(Environment):
             else:
                 b, c = rng.randint(11, 99), rng.randint(1000, 9999)
                 expr, text = f"{a}*{b}+{c}", f"{a} * {b} + {c}"
-            out.append({"prompt": f"What is {text}?", "answer": calculator(expr), "expression": expr})
+            out.append({"prompt": f"What is {text}?", "answer": tools.calculator(expr), "expression": expr})
         return out
 
     def score(self, problem: dict[str, Any], answer: str, finish: str = "answer") -> tuple[float, str]:

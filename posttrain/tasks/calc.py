@@ -1,0 +1,104 @@
+"""tiny-calc: products and sums of 3-4 digit numbers, solved with the calculator tool (the `calc` environment).
+
+CPU:  posttrain grpo --recipe tiny-calc     (tokenizer, tiny model, SFT on tool-use demonstrations, then multi-turn
+                                            GRPO in the calc environment; see the recipe header)
+
+Pure Python (no torch). The problems, the tool and the reward are the environment's
+(`posttrain.verifiers.envs.calc`); this module turns them into rows:
+- every row is a conversation (`messages`, TRL's format): the environment's system message (the tool's JSON schema
+  and the call format), the question, an assistant turn that calls the calculator, the tool's answer, and the final
+  answer. About one demonstration in eight first makes a malformed call (`347 x 582`, `347×582`: the calculator's
+  strict grammar refuses them), gets the error back, and calls again correctly: the model sees a recovery.
+- `answer` (the exact result) is the reference; GRPO and evaluation take the question (the first user message) as
+  the problem and let the environment build the conversation again.
+- Splits: a SHA-1 of the expression sends about 20% of problems to "eval"; `make_examples` is deterministic.
+`difficulty` of the environment's generator: 2 (two 3-digit numbers) for SFT and evaluation, which a 1M-parameter
+model cannot multiply in its head.
+"""
+from __future__ import annotations
+
+import hashlib
+from typing import Any, Literal, Sequence
+
+from posttrain.verifiers.envs.base import format_tool_call
+from posttrain.verifiers.envs.calc import CalcEnv, calculator, last_integer
+
+NAME = "tiny-calc"
+VERIFIER = None  # the reward is the environment's (grpo.env: calc)
+ENV = "calc"
+GOLD_METRICS = {"accuracy": "accuracy"}
+gold_quality = gold_breakdown = gold_key = gold_prefer = win_rate = None
+DIFFICULTY = 2
+EVAL_FRACTION = 0.2
+RECOVERY_EVERY = 8  # one demonstration in this many makes a bad call first
+
+
+def _split_of(expression: str) -> str:
+    h = int(hashlib.sha1(expression.encode()).hexdigest()[:8], 16)
+    return "eval" if h % 1000 < EVAL_FRACTION * 1000 else "train"
+
+
+def _bad_spelling(expression: str, k: int) -> str:
+    return expression.replace("*", [" x ", "×", " times "][k % 3])
+
+
+def demonstration(problem: dict[str, Any], recover: bool, k: int = 0) -> list[dict[str, Any]]:
+    """The conversation of one problem solved with the tool (after a refused call first when `recover`)."""
+    env = CalcEnv()
+    messages = env.reset(problem)
+    if recover:
+        bad = _bad_spelling(problem["expression"], k)
+        try:
+            calculator(bad)
+            raise AssertionError(f"the calculator accepted {bad!r}")
+        except ValueError as e:
+            error = f"error: ValueError: {e}"
+        messages += [{"role": "assistant", "content": format_tool_call("calculator", {"expression": bad})},
+                     {"role": "tool", "content": error}]
+    messages += [{"role": "assistant", "content": format_tool_call("calculator", {"expression": problem["expression"]})},
+                 {"role": "tool", "content": calculator(problem["expression"])},
+                 {"role": "assistant", "content": problem["answer"]}]
+    return messages
+
+
+def make_examples(n: int, seed: int, split: Literal["train", "eval"]) -> list[dict[str, Any]]:
+    """`n` rows of `split`: {"messages", "answer", "meta": {"task", "reference", "expression"}}."""
+    out: list[dict[str, Any]] = []
+    seen: set[str] = set()
+    batch = 0
+    while len(out) < n:
+        for p in CalcEnv.problems(4 * n + 64, seed=seed * 1000 + batch, difficulty=DIFFICULTY):
+            if p["expression"] in seen or _split_of(p["expression"]) != split:
+                continue
+            seen.add(p["expression"])
+            k = len(out)
+            out.append({"messages": demonstration(p, recover=k % RECOVERY_EVERY == RECOVERY_EVERY - 1, k=k),
+                        "answer": p["answer"],
+                        "meta": {"task": NAME, "reference": p["answer"], "expression": p["expression"]}})
+            if len(out) == n:
+                break
+        batch += 1
+    return out
+
+
+def problem_of(row: dict[str, Any]) -> dict[str, Any]:
+    """The environment's problem for a row: its question (first user message) and answer."""
+    if "messages" in row:
+        question = next(m["content"] for m in row["messages"] if m["role"] == "user")
+    else:
+        question = row["prompt"]
+    return {"prompt": question, "answer": str(row["answer"]), "expression": row.get("meta", {}).get("expression")}
+
+
+def corpus(n: int, seed: int) -> list[str]:
+    """Tokenizer texts: the demonstrations' messages, joined."""
+    return ["\n".join(m["content"] for m in r["messages"]) for r in make_examples(n, seed, "train")]
+
+
+def evaluate(metas: Sequence[dict[str, Any]], completions: Sequence[str]) -> dict[str, float]:
+    """Accuracy of final answers (the environment's rule: the last integer, at most 3 integers, no copied tool
+    message)."""
+    env = CalcEnv()
+    scores = [env.score({"answer": m["reference"]}, c)[0] for m, c in zip(metas, completions)]
+    return {"accuracy": sum(scores) / max(1, len(scores)),
+            "has_integer": sum(last_integer(c)[0] is not None for c in completions) / max(1, len(completions))}
