@@ -13,6 +13,9 @@ CPU: `python -c "import posttrain.problems"`; exercised through GRPO (tests/post
 - `build_reward` -> `Reward`: the scorers of `posttrain.scoring` (verifier, reward model, or both weighted).
 - `score_groups` / `gather_groups`: K samples per problem scored as `Group`s (identical completions of a problem
   scored once), gathered over processes in global order; a verifier that raised everywhere stops the run.
+- `load_problems`: the problems of a GRPO or distillation run (task, verifier, references, enough of them), checked
+  before any model loads; `sample_and_score`: one round of rollouts of a global prompt batch, sampled and scored by
+  each process for its positions, gathered.
 - `HeldOut`: greedy completions of held-out problems scored by the verifier (eval/accuracy is the pass rate of
   the FIRST term of a composition) and the reward model; the SFT baseline is measured once and kept for resume.
 """
@@ -22,7 +25,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from posttrain import loop, sharding
 from posttrain.errors import ConfigError
@@ -146,6 +149,47 @@ def tokenize_problems(tokenizer, ps: list[Problem], what: str, max_new_tokens: i
     return kept
 
 
+class ProblemSet(NamedTuple):
+    """What `load_problems` read and checked."""
+
+    verifier: Any  # the Verifier, or None (no verifier: a reward model only, or distillation without a reward)
+    train_rows: list[dict[str, Any]]
+    train_source: str
+    problems: list[Problem]  # training problems
+    eval_problems: list[Problem]  # held-out problems (the first max(eval_rows, final_eval_rows) rows)
+
+
+def load_problems(res, cfg, stage: str, *, schema: str = "verifiable") -> ProblemSet:
+    """The problems of a `stage` run (grpo, distill: the fields verifier, verifier_options, train_file, eval_file,
+    eval_rows, final_eval_rows, on_bad_rows, prompts_per_step of its config `cfg`), checked before any model
+    loads: the task, the verifier spec, a reference per problem when there is a verifier (on_bad_rows; skipped
+    rows are counted), enough problems. `schema` "prompt": the files' rows need no reference."""
+    from posttrain import tasks
+
+    try:
+        task = tasks.get_task(res.task.name)
+    except ValueError as e:
+        raise ConfigError(f"task.name: {e}") from None
+    train_rows, train_source = split_rows(res.task, "train", cfg.train_file, schema)
+    eval_rows, eval_source = split_rows(res.task, "eval", cfg.eval_file, schema)
+    eval_rows = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)]
+    verifier = build_verifier(cfg.verifier, cfg.verifier_options, task, train_rows, stage=stage)
+    if verifier is not None:
+        problems, skipped = check_problems(train_rows, train_source, cfg.on_bad_rows, stage=stage)
+        eval_problems, eval_skipped = check_problems(eval_rows, eval_source, cfg.on_bad_rows, stage=stage)
+        for n, what, rows in ((skipped, train_source, train_rows), (eval_skipped, eval_source, eval_rows)):
+            if n:  # on every process
+                print(f"[{stage}] skipped {len(n)} of {len(rows)} problems of {what} without a reference answer "
+                      f"(rows {', '.join(map(str, n[:10]))}{', ...' if len(n) > 10 else ''})")
+    else:  # no verifier: no references needed
+        problems = [Problem(r["prompt"], None, i) for i, r in enumerate(train_rows)]
+        eval_problems = [Problem(r["prompt"], None, i) for i, r in enumerate(eval_rows)]
+    if len(problems) < cfg.prompts_per_step:
+        raise ConfigError(f"{train_source}: {len(problems)} usable problems, fewer than {stage}.prompts_per_step="
+                          f"{cfg.prompts_per_step}")
+    return ProblemSet(verifier, train_rows, train_source, problems, eval_problems)
+
+
 @dataclass
 class Reward:
     """The run's reward, through `posttrain.scoring`: the verifier (None: reward model only) and its scorers."""
@@ -242,6 +286,38 @@ def gather_groups(reward: Reward, accelerator, mine: list[int], scored: tuple[li
     return groups, sum(n for _, _, n in shards)
 
 
+class Round(NamedTuple):
+    """One round of rollouts, scored and gathered (`sample_and_score`)."""
+
+    groups: list[Group]  # every process's, in global order
+    scored: int  # distinct completions scored (duplicates reuse a score; 0 without a reward)
+    sample_s: float  # this process's sampling time
+    score_s: float  # this process's scoring and gathering time
+
+
+def sample_and_score(accelerator, model, tokenizer, problems: list[Problem], idx: list[int], params,
+                     reward: Reward | None, step: int) -> Round:
+    """The round's global prompt batch problems[idx], params.n samples each: process r samples and scores positions
+    r, r + W, ... (a group never spans processes; a process with no position samples nothing), then the groups
+    are gathered, so every process holds all of them in global order. Without a `reward` the groups carry reward
+    0 and no reasons."""
+    from posttrain.rollout import generate
+
+    K = params.n
+    positions = sharding.positions(len(idx), accelerator.process_index, accelerator.num_processes)
+    local = [problems[idx[i]] for i in positions]
+    t0 = time.time()
+    out = generate(model, tokenizer, [p.prompt_ids for p in local], params,
+                   prompt_keys=[p.key for p in local]) if local else []
+    t1 = time.time()
+    if reward is not None:
+        groups, scored = gather_groups(reward, accelerator, positions, score_groups(reward, local, out, K, step), step)
+    else:
+        unscored = [Group(p, out[g * K:(g + 1) * K], [0.0] * K, [""] * K, {}) for g, p in enumerate(local)]
+        groups, scored = sharding.gather_rows(accelerator, unscored, positions), 0
+    return Round(groups, scored, t1 - t0, time.time() - t1)
+
+
 # ----------------------------------------------------------------------------- held-out evaluation
 @dataclass
 class HeldOut:
@@ -292,6 +368,13 @@ class HeldOut:
         if "rm" in ev:
             m["eval/rm"] = sum(ev["rm"][:n]) / n
         return m
+
+    def log_eval(self, policy, tokenizer, metrics: loop.MetricsLog, step: int, say) -> None:
+        """The periodic evaluation: the first n_eval problems, logged at `step` and said in one line."""
+        summary = self.summarise(self.evaluate(policy, tokenizer, self.n_eval), self.n_eval)
+        metrics.log(step, summary, console=False)
+        say(f"[{self.stage}] step {step} eval, {self.n_eval} held-out problems: "
+            + ", ".join(f"{k.removeprefix('eval/')} {v:.3f}" for k, v in summary.items()))
 
     def samples(self, ev: dict[str, Any]) -> list[dict[str, str]]:
         return [{"prompt": p.prompt, "completion": t} for p, t in zip(self.problems[:10], ev["texts"])]

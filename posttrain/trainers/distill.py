@@ -64,7 +64,7 @@ Deviations and limits:
 """
 from __future__ import annotations
 
-import collections
+import contextlib
 import functools
 import random
 import time
@@ -79,8 +79,8 @@ from posttrain.advantages import group_advantages, zero_variance_groups
 from posttrain.config import ConfigError, Resolved
 from posttrain.logprobs import completion_logits, masked_mean
 from posttrain.losses import policy_loss, token_divergence
-from posttrain.problems import (Group, HeldOut, Problem, build_reward, build_verifier, check_problems, gather_groups,
-                                preflight, score_groups, split_rows, tokenize_problems)
+from posttrain.problems import (HeldOut, Problem, Reward, build_reward, load_problems, preflight, sample_and_score,
+                                tokenize_problems)
 
 
 @dataclass
@@ -182,30 +182,183 @@ def check_config(cfg: DistillConfig) -> None:
         raise bad("verifier_workers and verifier_timeout_s must be >= 0")
 
 
-def load_problems(res: Resolved, cfg: DistillConfig):
-    """(verifier or None, training rows, their source, training problems, held-out problems), checked before any
-    model loads. Without a verifier the prompts need no reference."""
-    from posttrain import tasks
+# ----------------------------------------------------------------------------- train
+def train(res: Resolved, ensure) -> Path:
+    """On-policy distillation of the teacher into the recipe's SFT model; returns the final model directory."""
+    from posttrain.rollout import SamplingParams
 
-    try:
-        task = tasks.get_task(res.task.name)
-    except ValueError as e:
-        raise ConfigError(f"task.name: {e}") from None
+    cfg: DistillConfig = res.stage_cfg
+    check_config(cfg)
+    K, P = cfg.group_size, cfg.prompts_per_step
+    with contextlib.ExitStack() as stack:
+        run = setup(res, cfg, ensure, stack)  # prompts and verifier, teacher and student, optimizer, resume, baselines
+        t_start = time.time()
+        for step in range(run.start, cfg.max_steps):
+            done, t_step = step + 1, time.time()
+            saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
+            evaluating = cfg.eval_every and done % cfg.eval_every == 0
+            with loop.naming_checkpoint(run.ckpt):
+                # ---- rollout: the student's samples (GKD's lambda: else the teacher's), process r taking
+                # positions r, r + W, ... of the step's global prompt batch; score (verifier metrics and the
+                # reward term), gathered: every process holds every group
+                on_policy = random.Random(loop.stream_seed(cfg.seed, "distill/mix", step)).random() \
+                    < cfg.student_fraction
+                params = SamplingParams(n=K, max_new_tokens=cfg.max_new_tokens, temperature=cfg.temperature,
+                                        seed=loop.stream_seed(cfg.seed, "distill/sample", step))
+                got = sample_and_score(run.accelerator, run.student if on_policy else run.teacher, run.tokenizer,
+                                       run.problems, loop.batch_indices(len(run.problems), P, cfg.seed, step),
+                                       params, run.reward, step)
+                t_train = time.time()
+                rollouts = [r for g in got.groups for r in g.rollouts]
+                rewards = torch.tensor([x for g in got.groups for x in g.rewards], dtype=torch.float32)
+                # ---- update: one optimizer step on the step's token mean (micro-batches by the token budget)
+                m = update(run, rollouts, rewards, with_reward=cfg.reward_weight > 0 and on_policy, done=done)
+                if saving or evaluating:
+                    loop.check_weights(done, run.model)
+            # ---- log
+            m.update(step_metrics(rollouts, rewards, K, on_policy, run.reward is not None))
+            m.update({"time/sample": got.sample_s, "time/score": got.score_s, "time/train": time.time() - t_train,
+                      "time/step": time.time() - t_step})
+            run.metrics.log(done, m, console=False)
+            if run.main and not res.run.quiet and (done % cfg.log_every == 0 or done == cfg.max_steps):
+                print(progress_line(done, cfg.max_steps, m, time.time() - t_start, run.start), flush=True)
+            # ---- eval
+            if run.main and run.held_out is not None and run.held_out.n_eval and evaluating \
+                    and done != cfg.max_steps:
+                run.held_out.log_eval(run.student, run.tokenizer, run.metrics, done, run.say)
+            # ---- checkpoint
+            if saving:
+                run.ckpt.save(done, run.model, run.optimizer, run.scheduler, {"step": done})
+        return finish(run)
+
+
+# ----------------------------------------------------------------------------- setup, update and the end of a run
+@dataclass
+class DistillRun:
+    """What a run holds between steps (`setup`)."""
+
+    res: Resolved
+    cfg: DistillConfig
+    accelerator: Any
+    say: Any  # prints on the main process
+    run_dir: Path
+    main: bool
+    sft_dir: Path
+    teacher_dir: Path
+    tokenizer: Any
+    model: Any  # the student as accelerate prepared it
+    student: Any  # the student inside the wrapper: generation, evaluation, saving
+    teacher: Any  # frozen
+    vocab: int  # detail 6: the tokenizer's ids (padded output rows beyond it are never compared)
+    budget: int  # padded tokens per micro-batch (both models' logits)
+    optimizer: Any
+    scheduler: Any
+    ckpt: loop.Checkpointer
+    metrics: loop.MetricsLog
+    problems: list[Problem]
+    reward: Reward | None  # None without a verifier
+    held_out: HeldOut | None  # None without a verifier
+    start: int  # the first step (resume)
+    baseline: dict  # the student's SFT model's held-out numbers (main process)
+    teacher_eval: dict  # the teacher's (main process)
+
+
+def setup(res: Resolved, cfg: DistillConfig, ensure, stack: contextlib.ExitStack) -> DistillRun:
+    """Prompts and the verifier first (a bad row or a broken verifier stops before any model loads; the verifier
+    pool lives in `stack`), then the teacher and the SFT model (one tokenizer: checked before the run directory
+    changes), the optimizer, the resumed state and the held-out numbers of the SFT model and of the teacher."""
+    from posttrain.config import STAGE_SECTIONS
+    from posttrain.models import load_model, load_tokenizer, maybe_lora
+    from posttrain.verifiers.runner import VerifierPool
+
     schema = "prompt" if cfg.verifier == "none" else "verifiable"  # no verifier: a prompt file needs no answers
-    train_rows, train_source = split_rows(res.task, "train", cfg.train_file, schema)
-    eval_rows, eval_source = split_rows(res.task, "eval", cfg.eval_file, schema)
-    eval_rows = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)]
-    verifier = build_verifier(cfg.verifier, cfg.verifier_options, task, train_rows, stage="distill")
+    verifier, train_rows, train_source, problems, eval_problems = load_problems(res, cfg, "distill", schema=schema)
+    pool = stack.enter_context(VerifierPool(workers=cfg.verifier_workers, timeout_s=cfg.verifier_timeout_s or None))
     if verifier is not None:
-        problems, _ = check_problems(train_rows, train_source, cfg.on_bad_rows, stage="distill")
-        eval_problems, _ = check_problems(eval_rows, eval_source, cfg.on_bad_rows, stage="distill")
-    else:
-        problems = [Problem(r["prompt"], None, i) for i, r in enumerate(train_rows)]
-        eval_problems = [Problem(r["prompt"], None, i) for i, r in enumerate(eval_rows)]
+        preflight(verifier, pool, train_rows, train_source, print, stage="distill")
+    t_dir = teacher_dir(res, cfg, tuple(s for s in STAGE_SECTIONS if s not in ("eval", "distill")), ensure)
+    sft_dir = ensure("sft")
+    tokenizer = load_tokenizer(sft_dir, res.model)
+    check_same_tokenizer(tokenizer, load_tokenizer(t_dir, res.model), t_dir)  # before the run dir changes
+
+    accelerator, say = loop.start_run(res, cfg.seed, cfg.resume)
+    run_dir, main, device = res.stage_dir(), accelerator.is_main_process, accelerator.device
+    model = maybe_lora(res, load_model(sft_dir, res.model.dtype, device=device), say)
+    teacher = load_model(t_dir, res.model.dtype, device=device).eval().requires_grad_(False)
+    budget = distill_budget(res.run.micro_batch_tokens, model, teacher)
+    problems = tokenize_problems(tokenizer, problems, "training", cfg.max_new_tokens, res.model.max_length, say,
+                                 stage="distill")
+    eval_problems = tokenize_problems(tokenizer, eval_problems, "held-out", cfg.max_new_tokens,
+                                      res.model.max_length, say, stage="distill")
     if len(problems) < cfg.prompts_per_step:
-        raise ConfigError(f"{train_source}: {len(problems)} usable prompts, fewer than distill.prompts_per_step="
-                          f"{cfg.prompts_per_step}")
-    return verifier, train_rows, train_source, problems, eval_problems
+        raise loop.TrainingError(f"only {len(problems)} training prompts fit, fewer than "
+                                 f"prompts_per_step={cfg.prompts_per_step}")
+    reward = build_reward(verifier, pool, None, device, timeout_s=cfg.verifier_timeout_s) \
+        if verifier is not None else None
+    held_out = None if reward is None else HeldOut(
+        eval_problems, reward, cfg.max_new_tokens, min(cfg.eval_rows, len(eval_problems)),
+        min(cfg.final_eval_rows, len(eval_problems)), stage="distill",
+        start="base" if res.model.start_from == "base" else "SFT")
+    optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
+    scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
+    model, optimizer = accelerator.prepare(model, optimizer)
+    student = accelerator.unwrap_model(model)
+    ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
+    metrics = loop.open_metrics(res, cfg.max_steps, main, "[distill] ")
+    start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say,
+                            tag="distill")["step"]
+    baseline = held_out.sft_baseline(student, tokenizer, run_dir / "sft_eval.json", start, metrics, say) \
+        if main and held_out is not None else {}
+    teacher_eval = teacher_baseline(held_out, teacher, tokenizer, run_dir / "teacher_eval.json", say) \
+        if main and held_out is not None else {}
+    say(describe_run(cfg, t_dir, len(problems), verifier, accelerator.num_processes, device, budget))
+    return DistillRun(res, cfg, accelerator, say, run_dir, main, sft_dir, t_dir, tokenizer, model, student, teacher,
+                      len(tokenizer), budget, optimizer, scheduler, ckpt, metrics, problems, reward, held_out, start,
+                      baseline, teacher_eval)
+
+
+def update(run: DistillRun, rollouts: list, rewards: torch.Tensor, *, with_reward: bool,
+           done: int) -> dict[str, float]:
+    """One optimizer step on the step's rollouts (every process holds all of them; process r takes rows r, r + W,
+    ... in micro-batches of the token budget): the divergence, plus the reward term (`with_reward`, group
+    advantages of `rewards`); its metrics."""
+    from posttrain.rollout import collate_rollouts
+
+    cfg, device = run.cfg, run.accelerator.device
+    batch = collate_rollouts(rollouts, run.tokenizer.pad_token_id).to(device)
+    rows = {"input_ids": batch.input_ids, "attention_mask": batch.attention_mask, "loss_mask": batch.completion_mask}
+    if with_reward:
+        rows["advantages"] = group_advantages(rewards, cfg.group_size, estimator="grpo", std_scale="group").to(device)
+    world = run.accelerator.num_processes
+    mbs = sharding.micro_batches(rows, torch.arange(len(rollouts), device=device), cfg.micro_batch_size,
+                                 "token_mean", run.accelerator.process_index, world, run.budget)
+    loss_fn = functools.partial(distill_loss, cfg, run.model, run.teacher, run.vocab, with_reward, world)
+    return loop.optimizer_step(run.accelerator, run.model, run.optimizer, run.scheduler, mbs, loss_fn,
+                               cfg.max_grad_norm, done, weights=[tokens for _, _, tokens in mbs])
+
+
+def finish(run: DistillRun) -> Path:
+    """final/ (every process gathers a sharded model; the main process saves), the comparison with the SFT model
+    and the teacher, eval.json; returns final/."""
+    from posttrain.models import save_model
+
+    final = run.run_dir / "final"
+    whole = loop.full_state_dict(run.accelerator, run.model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
+    if run.main:
+        save_model(run.student, run.tokenizer, final, state_dict=whole)
+        run.say(f"[distill] saved {final}")
+        report = run.held_out.compare(run.student, run.tokenizer, run.baseline, run.metrics, run.cfg.max_steps,
+                                      run.say) if run.held_out is not None else {}
+        if run.teacher_eval:
+            report["teacher"] = run.teacher_eval
+            if "eval/accuracy" in run.teacher_eval:
+                run.say(f"[distill] teacher's held-out greedy accuracy: {run.teacher_eval['eval/accuracy']:.3f}")
+        loop.write_json(run.run_dir / "eval.json", {"model": str(final), "sft_model": str(run.sft_dir),
+                                                    "teacher_model": str(run.teacher_dir), **report})
+        run.metrics.close(report)
+    run.metrics.close()
+    run.accelerator.wait_for_everyone()
+    return final
 
 
 def teacher_dir(res: Resolved, cfg: DistillConfig, stages: tuple[str, ...], ensure) -> Path:
@@ -268,178 +421,56 @@ def distill_loss(cfg: DistillConfig, model, teacher, vocab: int, with_reward: bo
     with torch.no_grad():
         t_logits, _ = completion_logits(teacher, ids, am, mb["loss_mask"], temperature=cfg.temperature)
     s_logits, t_logits = s_logits[..., :vocab], t_logits[..., :vocab]
-    mask = mb["loss_mask"][:, c:].to(s_logits.device).bool()  # (b, T-c)
+    completion_mask = mb["loss_mask"][:, c:].to(s_logits.device).bool()  # (b, T-c)
     targets = ids[:, c:].to(s_logits.device)  # (b, T-c)
     logps = torch.log_softmax(s_logits, -1).gather(-1, targets[..., None]).squeeze(-1)  # (b, T-c)
-    nll = torch.where(mask, -logps, torch.zeros_like(logps))
-    per_token = nll if cfg.loss == "nll" else token_divergence(s_logits, t_logits, mask, kind=cfg.loss,
+    nll = torch.where(completion_mask, -logps, torch.zeros_like(logps))
+    per_token = nll if cfg.loss == "nll" else token_divergence(s_logits, t_logits, completion_mask, kind=cfg.loss,
                                                                 beta=cfg.jsd_beta)  # (b, T-c)
-    loss = masked_mean(per_token, mask)
+    loss = masked_mean(per_token, completion_mask)
     m: dict[str, float] = {}
     with torch.no_grad():
         sd, td = s_logits.detach(), t_logits.detach()
-        m["kl/reverse"] = float(masked_mean(token_divergence(sd, td, mask, kind="reverse_kl"), mask))
-        m["kl/forward"] = float(masked_mean(token_divergence(sd, td, mask, kind="forward_kl"), mask))
-        m["nll"] = float(masked_mean(nll.detach(), mask))
+        for kind in ("reverse", "forward"):
+            m[f"kl/{kind}"] = float(masked_mean(token_divergence(sd, td, completion_mask, kind=f"{kind}_kl"),
+                                                completion_mask))
+        m["nll"] = float(masked_mean(nll.detach(), completion_mask))
     if with_reward:  # detail 5: on-policy, so the ratio is 1 and this is REINFORCE with the group baseline
-        pg, _ = policy_loss("clip", logps, logps.detach(), mb["advantages"].to(logps.device), mask, clip_eps=0.2,
-                            aggregation="token_mean")  # ratio 1: the clip never binds
+        pg, _ = policy_loss("clip", logps, logps.detach(), mb["advantages"].to(logps.device), completion_mask,
+                            clip_eps=0.2, aggregation="token_mean")  # ratio 1: the clip never binds
         loss = loss + cfg.reward_weight * pg
         m["pg_loss"] = float(pg.detach())
     return loss * share * world, m
 
 
-# ----------------------------------------------------------------------------- train
-def train(res: Resolved, ensure) -> Path:
-    """On-policy distillation of the teacher into the recipe's SFT model; returns the final model directory."""
-    from posttrain.config import STAGE_SECTIONS
-    from posttrain.models import load_model, load_tokenizer, maybe_lora, save_model
-    from posttrain.rollout import SamplingParams, collate_rollouts, generate
-    from posttrain.verifiers.runner import VerifierPool
-
-    cfg: DistillConfig = res.stage_cfg
-    check_config(cfg)
-    K, P = cfg.group_size, cfg.prompts_per_step
-    # Prompts and the verifier first: a bad row or a broken verifier stops before any model loads.
-    verifier, train_rows, train_source, problems, eval_problems = load_problems(res, cfg)
-    with VerifierPool(workers=cfg.verifier_workers, timeout_s=cfg.verifier_timeout_s or None) as pool:
-        if verifier is not None:
-            preflight(verifier, pool, train_rows, train_source, print, stage="distill")
-        t_dir = teacher_dir(res, cfg, tuple(s for s in STAGE_SECTIONS if s not in ("eval", "distill")), ensure)
-        sft_dir = ensure("sft")
-        tokenizer = load_tokenizer(sft_dir, res.model)
-        check_same_tokenizer(tokenizer, load_tokenizer(t_dir, res.model), t_dir)  # before the run dir changes
-
-        accelerator, say = loop.start_run(res, cfg.seed, cfg.resume)
-        run_dir, main, device = res.stage_dir(), accelerator.is_main_process, accelerator.device
-        rank, world = accelerator.process_index, accelerator.num_processes
-        model = maybe_lora(res, load_model(sft_dir, res.model.dtype, device=device), say)
-        teacher = load_model(t_dir, res.model.dtype, device=device).eval().requires_grad_(False)
-        vocab = len(tokenizer)  # detail 6: padded output rows beyond the tokenizer are never compared
-        budget = distill_budget(res.run.micro_batch_tokens, model, teacher)
-        problems = tokenize_problems(tokenizer, problems, "training", cfg.max_new_tokens, res.model.max_length, say,
-                                     stage="distill")
-        eval_problems = tokenize_problems(tokenizer, eval_problems, "held-out", cfg.max_new_tokens,
-                                          res.model.max_length, say, stage="distill")
-        if len(problems) < P:
-            raise loop.TrainingError(f"only {len(problems)} training prompts fit, fewer than prompts_per_step={P}")
-        reward = build_reward(verifier, pool, None, device, timeout_s=cfg.verifier_timeout_s) \
-            if verifier is not None else None
-        held = None if reward is None else HeldOut(
-            eval_problems, reward, cfg.max_new_tokens, min(cfg.eval_rows, len(eval_problems)),
-            min(cfg.final_eval_rows, len(eval_problems)), stage="distill",
-            start="base" if res.model.start_from == "base" else "SFT")
-        optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
-        scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
-        model, optimizer = accelerator.prepare(model, optimizer)
-        student = accelerator.unwrap_model(model)
-        ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
-        metrics = loop.open_metrics(res, cfg.max_steps, main, "[distill] ")
-        start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say,
-                                tag="distill")["step"]
-        baseline = held.sft_baseline(student, tokenizer, run_dir / "sft_eval.json", start, metrics, say) \
-            if main and held is not None else {}
-        teacher_eval = teacher_baseline(held, teacher, tokenizer, run_dir / "teacher_eval.json", say) \
-            if main and held is not None else {}
-        say(describe_run(cfg, t_dir, len(problems), verifier, world, device, budget))
-        t_start = time.time()
-        for step in range(start, cfg.max_steps):
-            done = step + 1
-            t_step = time.time()
-            saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
-            evaluating = cfg.eval_every and done % cfg.eval_every == 0
-            with loop.naming_checkpoint(ckpt):
-                # ---- rollout: the student's samples (GKD's lambda: else the teacher's), process r taking
-                # positions r, r + W, ... of the step's global prompt batch
-                on_policy = random.Random(loop.stream_seed(cfg.seed, "distill/mix", step)).random() < cfg.student_fraction
-                idx = loop.batch_indices(len(problems), P, cfg.seed, step)
-                mine = sharding.positions(P, rank, world)
-                ps = [problems[idx[i]] for i in mine]
-                params = SamplingParams(n=K, max_new_tokens=cfg.max_new_tokens, temperature=cfg.temperature,
-                                        seed=loop.stream_seed(cfg.seed, "distill/sample", step))
-                t0 = time.time()
-                out = generate(student if on_policy else teacher, tokenizer, [p.prompt_ids for p in ps], params,
-                               prompt_keys=[p.key for p in ps]) if ps else []
-                # ---- score (verifier metrics and the reward term), gathered: every process holds every group
-                t1 = time.time()
-                if reward is not None:
-                    groups, _ = gather_groups(reward, accelerator, mine, score_groups(reward, ps, out, K, step), step)
-                else:
-                    local = [Group(p, out[g * K:(g + 1) * K], [0.0] * K, [""] * K, {}) for g, p in enumerate(ps)]
-                    groups = sharding.gather_rows(accelerator, local, mine)
-                t2 = time.time()
-                rollouts = [r for g in groups for r in g.rollouts]
-                rewards = torch.tensor([x for g in groups for x in g.rewards], dtype=torch.float32)
-                with_reward = cfg.reward_weight > 0 and on_policy
-                # ---- update: one optimizer step on the step's token mean (micro-batches by the token budget)
-                batch = collate_rollouts(rollouts, tokenizer.pad_token_id).to(device)
-                rows = {"input_ids": batch.input_ids, "attention_mask": batch.attention_mask,
-                        "loss_mask": batch.completion_mask}
-                if with_reward:
-                    rows["advantages"] = group_advantages(rewards, K, estimator="grpo", std_scale="group").to(device)
-                mbs = sharding.micro_batches(rows, torch.arange(len(rollouts), device=device), cfg.micro_batch_size,
-                                             "token_mean", rank, world, budget)
-                loss_fn = functools.partial(distill_loss, cfg, model, teacher, vocab, with_reward, world)
-                m = loop.optimizer_step(accelerator, model, optimizer, scheduler, mbs, loss_fn, cfg.max_grad_norm,
-                                        done, weights=[tokens for _, _, tokens in mbs])
-                if saving or evaluating:
-                    loop.check_weights(done, model)
-
-            # ---- log
-            lengths = [len(r.completion_ids) for r in rollouts]
-            m.update({"samples/student": float(on_policy), "completion/length": sum(lengths) / len(lengths),
-                      "completion/truncated": sum(r.finish_reason == "length" for r in rollouts) / len(rollouts),
-                      "tokens/generated": float(sum(lengths)), "time/sample": t1 - t0, "time/score": t2 - t1,
-                      "time/train": time.time() - t2, "time/step": time.time() - t_step})
-            if reward is not None:
-                m["reward/mean"] = float(rewards.mean())
-                m["zero_var_frac"] = float(zero_variance_groups(rewards, K).float().mean()) if K > 1 else 0.0
-            metrics.log(done, m, console=False)
-            if main and not res.run.quiet and (done % cfg.log_every == 0 or done == cfg.max_steps):
-                print(progress_line(done, cfg.max_steps, m, time.time() - t_start, start), flush=True)
-            # ---- eval
-            if main and held is not None and held.n_eval and evaluating and done != cfg.max_steps:
-                em = held.summarise(held.evaluate(student, tokenizer, held.n_eval), held.n_eval)
-                metrics.log(done, em, console=False)
-                say(f"[distill] step {done} eval, {held.n_eval} held-out problems: "
-                    + ", ".join(f"{k.removeprefix('eval/')} {v:.3f}" for k, v in em.items()))
-            # ---- checkpoint
-            if saving:
-                ckpt.save(done, model, optimizer, scheduler, {"step": done})
-
-        final = run_dir / "final"
-        whole = loop.full_state_dict(accelerator, model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
-        if main:
-            save_model(student, tokenizer, final, state_dict=whole)
-            say(f"[distill] saved {final}")
-            report = held.compare(student, tokenizer, baseline, metrics, cfg.max_steps, say) if held is not None else {}
-            if teacher_eval:
-                report["teacher"] = teacher_eval
-                key = "eval/accuracy" if "eval/accuracy" in teacher_eval else None
-                if key:
-                    say(f"[distill] teacher's held-out greedy accuracy: {teacher_eval[key]:.3f}")
-            loop.write_json(run_dir / "eval.json", {"model": str(final), "sft_model": str(sft_dir),
-                                                    "teacher_model": str(t_dir), **report})
-            metrics.close(report)
-        metrics.close()
-        accelerator.wait_for_everyone()
-        return final
-
-
 # ----------------------------------------------------------------------------- log
-def teacher_baseline(held: HeldOut, teacher, tokenizer, path: Path, say) -> dict[str, float]:
-    """The teacher's held-out numbers (once per run directory: read back on resume)."""
+def step_metrics(rollouts: list, rewards: torch.Tensor, K: int, on_policy: bool, with_reward: bool
+                 ) -> dict[str, float]:
+    """Whose samples, their length and truncation, the tokens generated; with a reward, its mean and the fraction
+    of groups with identical rewards."""
+    lengths = [len(r.completion_ids) for r in rollouts]
+    m = {"samples/student": float(on_policy), "completion/length": sum(lengths) / len(lengths),
+         "completion/truncated": sum(r.finish_reason == "length" for r in rollouts) / len(rollouts),
+         "tokens/generated": float(sum(lengths))}
+    if with_reward:
+        m["reward/mean"] = float(rewards.mean())
+        m["zero_var_frac"] = float(zero_variance_groups(rewards, K).float().mean()) if K > 1 else 0.0
+    return m
+
+
+def teacher_baseline(held_out: HeldOut, teacher, tokenizer, path: Path, say) -> dict[str, float]:
+    """The teacher's held_out-out numbers (once per run directory: read back on resume)."""
     import json
 
-    if not held.n_final and not held.n_eval:
+    if not held_out.n_final and not held_out.n_eval:
         return {}
     if path.is_file():
         return json.loads(path.read_text())
-    n = held.n_final or held.n_eval
-    m = held.summarise(held.evaluate(teacher, tokenizer, n), n)
+    n = held_out.n_final or held_out.n_eval
+    m = held_out.summarise(held_out.evaluate(teacher, tokenizer, n), n)
     loop.write_json(path, m)
     if "eval/accuracy" in m:
-        say(f"[distill] teacher, greedy, {n} held-out problems: accuracy {m['eval/accuracy']:.3f}")
+        say(f"[distill] teacher, greedy, {n} held_out-out problems: accuracy {m['eval/accuracy']:.3f}")
     return m
 
 

@@ -99,6 +99,7 @@ Deviations and limits:
 from __future__ import annotations
 
 import collections
+import contextlib
 import functools
 import time
 from dataclasses import dataclass, field
@@ -108,13 +109,13 @@ from typing import Any, Literal
 import torch
 
 from posttrain import loop, sharding
-from posttrain.problems import (PREFLIGHT_ROWS, Group, HeldOut, Problem, Reward, build_reward,  # noqa: F401
-                                build_verifier, check_problems, gather_groups, preflight, row_reference, score_groups,
-                                split_rows, tokenize_problems)
 from posttrain.advantages import curriculum_weights, group_advantages, track_pass_rates, zero_variance_groups
 from posttrain.config import ConfigError, Resolved
 from posttrain.logprobs import masked_mean, sequence_logprobs
 from posttrain.losses import aggregate_token_loss, kl_penalty, policy_loss, rollout_correction, sampler_mismatch
+from posttrain.problems import (HeldOut, Problem, Reward, build_reward, load_problems, preflight, sample_and_score,
+                                tokenize_problems)
+
 
 @dataclass
 class GRPOConfig:
@@ -276,37 +277,161 @@ def check_config(cfg: GRPOConfig) -> None:
         raise bad("verifier=none and reward_model=none: there is no reward; set one of them")
 
 
-def load_problems(res: Resolved, cfg: GRPOConfig):
-    """(verifier, training rows, their source, training problems, held-out problems), checked before any model
-    loads: the task, the verifier spec, a reference per problem (on_bad_rows), enough problems, the reward model."""
-    from posttrain import tasks
-    from posttrain.models import is_model_dir
+# ----------------------------------------------------------------------------- train
+def train(res: Resolved, ensure) -> Path:
+    """GRPO on the recipe's task from the SFT model; returns the final model directory."""
+    cfg: GRPOConfig = res.stage_cfg
+    check_config(cfg)
+    with contextlib.ExitStack() as stack:
+        run = setup(res, cfg, ensure, stack)  # problems and reward, models, optimizer, resume, the SFT baseline
+        t_start = time.time()
+        for step in range(run.start, cfg.max_steps):
+            done, t_step = step + 1, time.time()
+            saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
+            evaluating = cfg.eval_every and done % cfg.eval_every == 0
+            with loop.naming_checkpoint(run.ckpt):
+                # ---- rollout and score, in rounds (DAPO dynamic sampling: more rounds until P informative groups)
+                step_batch, scored, timing = rollout_rounds(run, step)
+                m = _row_metrics(step_batch, cfg.group_size, run.reward.verifier_parts)
+                if run.curriculum is not None:  # every process holds every group: the same table everywhere
+                    run.curriculum.update(cfg, [run.index_of[p.key] for p in step_batch.problems],
+                                          passed_flags(step_batch, run.reward))
+                    m.update(run.curriculum.metrics())
+                # ---- advantages of the kept groups; pi_old (when recomputed) and reference log-probs, no grad
+                t0 = time.time()
+                rows = loss_rows(cfg, step_batch, run.accelerator, run.tokenizer.pad_token_id,
+                                 run.policy if run.recompute_old else None, run.ref_model, run.budget)
+                m.update(apply_rollout_correction(cfg, rows))  # pi_old recomputed: the sampler's gap, the correction
+                # ---- update: mu passes x minibatches of clipped-ratio steps
+                m.update(update(cfg, run.accelerator, run.model, run.optimizer, run.scheduler, rows, step, run.budget,
+                                sampler_old=not run.recompute_old))
+                timing["train"] = time.time() - t0
+                if saving or evaluating:
+                    loop.check_weights(done, run.model)
+            # ---- log: metrics.jsonl every step, problems in words, a console line every log_every steps
+            m["verifier/scored"] = float(scored)  # distinct completions scored (duplicates reuse a score)
+            m.update({f"time/{k}": v for k, v in timing.items()})
+            m["time/step"] = time.time() - t_step
+            log_step(run, done, m, step_batch, timing, time.time() - t_start)
+            # ---- eval
+            if run.main and run.held_out.n_eval and evaluating and done != cfg.max_steps:
+                run.held_out.log_eval(run.policy, run.tokenizer, run.metrics, done, run.say)
+            # ---- checkpoint (with the curriculum's table)
+            if saving:
+                run.ckpt.save(done, run.model, run.optimizer, run.scheduler, {"step": done},
+                              None if run.curriculum is None else {"curriculum": run.curriculum.state()})
+        return finish(run)
 
-    try:
-        task = tasks.get_task(res.task.name)
-    except ValueError as e:
-        raise ConfigError(f"task.name: {e}") from None
-    train_rows, train_source = split_rows(res.task, "train", cfg.train_file)
-    eval_rows, eval_source = split_rows(res.task, "eval", cfg.eval_file)
-    eval_rows = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)]
-    verifier = build_verifier(cfg.verifier, cfg.verifier_options, task, train_rows)
-    if verifier is not None:
-        problems, skipped = check_problems(train_rows, train_source, cfg.on_bad_rows)
-        eval_problems, eval_skipped = check_problems(eval_rows, eval_source, cfg.on_bad_rows)
-        for n, what, rows in ((skipped, train_source, train_rows), (eval_skipped, eval_source, eval_rows)):
-            if n:  # on every process
-                print(f"[grpo] skipped {len(n)} of {len(rows)} problems of {what} without a reference answer "
-                      f"(rows {', '.join(map(str, n[:10]))}{', ...' if len(n) > 10 else ''})")
-    else:  # reward model only: no references needed
-        problems = [Problem(r["prompt"], None, i) for i, r in enumerate(train_rows)]
-        eval_problems = [Problem(r["prompt"], None, i) for i, r in enumerate(eval_rows)]
-    if len(problems) < cfg.prompts_per_step:
-        raise ConfigError(f"{train_source}: {len(problems)} usable problems, fewer than grpo.prompts_per_step="
-                          f"{cfg.prompts_per_step}")
+
+# ----------------------------------------------------------------------------- setup and the end of a run
+@dataclass
+class GRPORun:
+    """What a run holds between steps (`setup`)."""
+
+    res: Resolved
+    cfg: GRPOConfig
+    accelerator: Any
+    say: Any  # prints on the main process
+    run_dir: Path
+    main: bool
+    sft_dir: Path
+    tokenizer: Any
+    model: Any  # as accelerate prepared it
+    policy: Any  # the model inside the wrapper: generation, evaluation, saving
+    ref_model: Any  # None when beta = 0
+    budget: int  # padded tokens per micro-batch (memory)
+    recompute_old: bool  # pi_old recomputed by the trainer (not the sampler's log-probs)
+    optimizer: Any
+    scheduler: Any
+    ckpt: loop.Checkpointer
+    metrics: loop.MetricsLog
+    problems: list[Problem]
+    index_of: dict[int, int]  # a group's problem key -> its position in `problems`
+    reward: Reward
+    held_out: HeldOut
+    curriculum: Curriculum | None
+    rounds: int  # sampling rounds per step at most
+    start: int  # the first step (resume)
+    baseline: dict  # the SFT model's held-out numbers (main process)
+
+
+def setup(res: Resolved, cfg: GRPOConfig, ensure, stack: contextlib.ExitStack) -> GRPORun:
+    """Problems and the reward first (a bad row or a broken verifier stops before any model loads; the verifier
+    pool lives in `stack`), then the earlier stages, the models, the optimizer, the resumed state and the SFT
+    model's held-out numbers."""
+    from posttrain.models import is_model_dir, load_model, load_reference, load_tokenizer, maybe_lora, token_budget
+    from posttrain.rollout import default_backend
+    from posttrain.verifiers.runner import VerifierPool
+
+    P = cfg.prompts_per_step
+    verifier, train_rows, train_source, problems, eval_problems = load_problems(res, cfg, "grpo")
     if cfg.reward_model not in ("none", "train") and not is_model_dir(cfg.reward_model):
         raise ConfigError(f"grpo.reward_model {cfg.reward_model!r} is not a model directory; give none, train or "
                           "the path of a reward model (posttrain rm output)")
-    return verifier, train_rows, train_source, problems, eval_problems
+    pool = stack.enter_context(VerifierPool(workers=cfg.verifier_workers, timeout_s=cfg.verifier_timeout_s or None))
+    if verifier is not None:
+        preflight(verifier, pool, train_rows, train_source, print)
+    rm_dir = ensure("rm") if cfg.reward_model == "train" else \
+        (Path(cfg.reward_model) if cfg.reward_model != "none" else None)
+    sft_dir = ensure("sft")
+
+    accelerator, say = loop.start_run(res, cfg.seed, cfg.resume)
+    run_dir, main, device = res.stage_dir(), accelerator.is_main_process, accelerator.device
+    tokenizer = load_tokenizer(sft_dir, res.model)
+    model = maybe_lora(res, load_model(sft_dir, res.model.dtype, device=device), say)  # LoRA: adapters start at 0
+    budget = token_budget(res.run.micro_batch_tokens, model)  # padded tokens per micro-batch (memory)
+    # beta = 0: no reference model at all; LoRA: the policy with its adapters off (no copy of the weights)
+    ref_model = load_reference(res, model, sft_dir, device) if cfg.beta > 0 else None
+    problems = tokenize_problems(tokenizer, problems, "training", cfg.max_new_tokens, res.model.max_length, say)
+    eval_problems = tokenize_problems(tokenizer, eval_problems, "held-out", cfg.max_new_tokens,
+                                      res.model.max_length, say)
+    if len(problems) < P:
+        raise loop.TrainingError(f"only {len(problems)} training prompts fit, fewer than prompts_per_step={P}")
+    reward = build_reward(verifier, pool, rm_dir, device, timeout_s=cfg.verifier_timeout_s,
+                          on_error=cfg.on_verifier_error, verifier_weight=cfg.verifier_weight,
+                          reward_model_weight=cfg.reward_model_weight)
+    held_out = HeldOut(eval_problems, reward, cfg.max_new_tokens, min(cfg.eval_rows, len(eval_problems)),
+                       min(cfg.final_eval_rows, len(eval_problems)),
+                       start="base" if res.model.start_from == "base" else "SFT")
+    # pi_old recomputed: asked for, rollout correction (it weighs pi_old against the sampler), a truncated sampler
+    # (top-p) at temperature != 1, or vLLM rollouts
+    recompute_old = cfg.old_logprobs == "recompute" or cfg.rollout_correction != "none" \
+        or (cfg.temperature != 1.0 and cfg.top_p < 1.0) or default_backend() == "vllm"
+    optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
+    scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps * cfg.mu * cfg.minibatches,
+                                     cfg.schedule, cfg.min_lr_ratio)  # it counts optimizer updates
+    model, optimizer = accelerator.prepare(model, optimizer)
+    policy = accelerator.unwrap_model(model)
+    ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
+    metrics = loop.open_metrics(res, cfg.max_steps, main, "[grpo] ")
+    state = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="grpo")
+    start, saved = state["step"], state["extra"].get("curriculum")
+    curriculum = None if cfg.prompt_sampling == "uniform" else Curriculum.fresh(len(problems)) if saved is None \
+        else Curriculum(torch.tensor(saved["rates"]), torch.tensor(saved["seen"], dtype=torch.bool))
+    baseline = held_out.sft_baseline(policy, tokenizer, run_dir / "sft_eval.json", start, metrics, say) if main else {}
+    say(describe_run(cfg, reward, len(problems), rm_dir, recompute_old, accelerator.num_processes, device, budget))
+    rounds = 1 + (cfg.max_resample_rounds if cfg.zero_variance == "resample" else 0)
+    return GRPORun(res, cfg, accelerator, say, run_dir, main, sft_dir, tokenizer, model, policy, ref_model, budget,
+                   recompute_old, optimizer, scheduler, ckpt, metrics, problems,
+                   {p.key: i for i, p in enumerate(problems)}, reward, held_out, curriculum, rounds, start, baseline)
+
+
+def finish(run: GRPORun) -> Path:
+    """final/ (every process gathers a sharded model; the main process saves), the comparison with the SFT model
+    and eval.json; returns final/."""
+    from posttrain.models import save_model
+
+    final = run.run_dir / "final"
+    whole = loop.full_state_dict(run.accelerator, run.model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
+    if run.main:
+        save_model(run.policy, run.tokenizer, final, state_dict=whole)
+        run.say(f"[grpo] saved {final}")
+        report = run.held_out.compare(run.policy, run.tokenizer, run.baseline, run.metrics, run.cfg.max_steps, run.say)
+        loop.write_json(run.run_dir / "eval.json", {"model": str(final), "sft": str(run.sft_dir), **report})
+        run.metrics.close(report)
+    run.metrics.close()
+    run.accelerator.wait_for_everyone()
+    return final
 
 
 # ----------------------------------------------------------------------------- rollout and score
@@ -342,6 +467,10 @@ class Curriculum:
         self.rates, self.seen = track_pass_rates(self.rates, self.seen, torch.tensor(index, dtype=torch.long), rate,
                                                  cfg.curriculum_decay)
 
+    def state(self) -> dict[str, list]:
+        """The table as the checkpoint keeps it."""
+        return {"rates": self.rates.tolist(), "seen": self.seen.tolist()}
+
     def metrics(self) -> dict[str, float]:
         """The pool's pass-rate histogram: fractions of all problems unseen, and of the seen ones never solved,
         below 1/2, at least 1/2 (not always) and always solved."""
@@ -376,8 +505,35 @@ class StepBatch:
                    [x for g in groups for x in g.reasons], first_round_groups, rounds)
 
 
+def rollout_rounds(run: GRPORun, step: int) -> tuple[StepBatch, int, dict[str, float]]:
+    """The step's rollouts, in rounds: each round's global prompt batch (the data order, or the curriculum's draw),
+    K samples per prompt, scored in the verifier pool and gathered (`problems.sample_and_score`: every process
+    holds every group); with zero_variance=resample, more rounds until P groups are informative (DAPO dynamic
+    sampling). Returns the step's batch, the distinct completions scored and this process's sample / score time."""
+    from posttrain.rollout import SamplingParams
+
+    cfg, K, P = run.cfg, run.cfg.group_size, run.cfg.prompts_per_step
+    groups, scored, first_round, drawn = [], 0, 0, []
+    timing: dict[str, float] = collections.defaultdict(float)
+    for rnd in range(run.rounds):
+        idx = loop.batch_indices(len(run.problems), P, round_order_seed(cfg.seed, rnd), step) \
+            if run.curriculum is None else \
+            run.curriculum.pick(cfg, P, loop.stream_seed(cfg.seed, "grpo/curriculum", step, rnd), drawn)
+        drawn += idx
+        params = SamplingParams(n=K, max_new_tokens=cfg.max_new_tokens, temperature=cfg.temperature, top_p=cfg.top_p,
+                                seed=loop.stream_seed(cfg.seed, "grpo/sample", step, rnd))
+        got = sample_and_score(run.accelerator, run.policy, run.tokenizer, run.problems, idx, params, run.reward, step)
+        timing["sample"] += got.sample_s
+        timing["score"] += got.score_s
+        groups, scored, first_round = groups + got.groups, scored + got.scored, first_round or len(got.groups)
+        step_batch = StepBatch.of(groups, first_round, rnd + 1)
+        if int((~zero_variance_groups(step_batch.rewards, K)).sum()) >= P:  # informative groups
+            break
+    return step_batch, scored, timing
+
+
 # ----------------------------------------------------------------------------- advantages and update
-def loss_rows(cfg: GRPOConfig, sb: StepBatch, accelerator, pad_id: int, old_model, ref_model,
+def loss_rows(cfg: GRPOConfig, step_batch: StepBatch, accelerator, pad_id: int, old_model, ref_model,
               budget: int = 0) -> dict[str, torch.Tensor] | None:
     """The rows of the loss: the kept groups' tokens, loss mask and group advantages, pi_old (the engine's, or
     recomputed by `old_model`) and the reference log-probs (beta > 0); None when no group is kept. The no-grad
@@ -386,18 +542,18 @@ def loss_rows(cfg: GRPOConfig, sb: StepBatch, accelerator, pad_id: int, old_mode
     from posttrain.rollout import collate_rollouts
 
     K = cfg.group_size
-    zv = zero_variance_groups(sb.rewards, K)  # (G,)
+    zv = zero_variance_groups(step_batch.rewards, K)  # (G,)
     keep = torch.ones_like(zv) if cfg.zero_variance == "keep" else ~zv  # (G,)
     if cfg.zero_variance == "resample":
         keep &= torch.cumsum(keep.long(), 0) <= cfg.prompts_per_step  # refill up to P groups, no more
     rows_idx = [g * K + j for g in keep.nonzero().flatten().tolist() for j in range(K)]
     if not rows_idx:
         return None
-    adv = group_advantages(sb.rewards[rows_idx], K, estimator=cfg.estimator, std_scale=cfg.std_scale)  # (n,)
-    batch = collate_rollouts([sb.rollouts[i] for i in rows_idx], pad_id).to(accelerator.device)
+    adv = group_advantages(step_batch.rewards[rows_idx], K, estimator=cfg.estimator, std_scale=cfg.std_scale)  # (n,)
+    batch = collate_rollouts([step_batch.rollouts[i] for i in rows_idx], pad_id).to(accelerator.device)
     loss_mask = batch.completion_mask.clone()  # (n, T)
     if cfg.mask_truncated:  # DAPO overlong filtering: truncated completions carry no loss
-        loss_mask[torch.tensor([sb.rollouts[i].finish_reason == "length" for i in rows_idx],
+        loss_mask[torch.tensor([step_batch.rollouts[i].finish_reason == "length" for i in rows_idx],
                                device=loss_mask.device)] = 0
     # pi_old from the engine: raw log-probs at temperature 1, or (temperature != 1, no top-p) the log-probs
     # of the distribution it sampled, softmax(logits / T), which is the one the loss uses; else recomputed.
@@ -405,7 +561,7 @@ def loss_rows(cfg: GRPOConfig, sb: StepBatch, accelerator, pad_id: int, old_mode
     rows = {"input_ids": batch.input_ids, "attention_mask": batch.attention_mask, "loss_mask": loss_mask,
             "advantages": adv.to(accelerator.device), "old_logps": sampler_logps}
     micro = cfg.micro_batch_size or len(rows_idx)
-    if old_model is not None:  # the trainer's pi_old; the sampler's stay for `correct_rows`
+    if old_model is not None:  # the trainer's pi_old; the sampler's stay for `apply_rollout_correction`
         rows["old_logps"] = sharding.sharded_logprobs(accelerator, old_model, batch, micro, cfg.temperature, budget)
         rows["sampler_logps"] = sampler_logps
     if ref_model is not None:
@@ -413,7 +569,7 @@ def loss_rows(cfg: GRPOConfig, sb: StepBatch, accelerator, pad_id: int, old_mode
     return rows
 
 
-def correct_rows(cfg: GRPOConfig, rows: dict[str, torch.Tensor] | None) -> dict[str, float]:
+def apply_rollout_correction(cfg: GRPOConfig, rows: dict[str, torch.Tensor] | None) -> dict[str, float]:
     """Where pi_old was recomputed by the trainer, the sampler's log-probs are a second opinion: the gap between
     the two over every row (`losses.sampler_mismatch`: mismatch/kl, mismatch/max_ratio, mismatch/min_ratio) and,
     with rollout_correction, the importance weights `rows["is_weights"]` and the loss mask without the tokens
@@ -498,6 +654,21 @@ def update(cfg: GRPOConfig, accelerator, model, optimizer, scheduler, rows: dict
 
 
 # ----------------------------------------------------------------------------- log
+def log_step(run: GRPORun, done: int, m: dict[str, float], step_batch: StepBatch, timing: dict[str, float],
+             elapsed: float) -> None:
+    """metrics.jsonl every step, the step's problems in words, a console line every log_every steps, the scored
+    rollouts every save_rollouts_every steps."""
+    cfg = run.cfg
+    run.metrics.log(done, m, console=False)
+    for note in step_notes(done, m, step_batch, cfg.group_size, run.reward):
+        run.say(note)
+    if run.main and not run.res.run.quiet and (done % cfg.log_every == 0 or done == cfg.max_steps):
+        print(progress_line(done, cfg.max_steps, m, timing, elapsed, run.start), flush=True)
+    if run.main and cfg.save_rollouts_every and done % cfg.save_rollouts_every == 0:
+        table = save_scored_rollouts(cfg, step_batch, run.run_dir, done)
+        run.metrics.log_table("rollouts", table, done)
+
+
 def describe_run(cfg: GRPOConfig, reward: Reward, n_problems: int, rm_dir: Path | None, recompute_old: bool,
                  world: int, device, budget: int = 0) -> str:
     from posttrain.rollout import default_backend
@@ -517,43 +688,43 @@ def describe_run(cfg: GRPOConfig, reward: Reward, n_problems: int, rm_dir: Path 
             + (f"; micro-batches <= {budget} tokens" if budget else ""))
 
 
-def _row_metrics(sb: StepBatch, K: int, verifier_parts: set[str]) -> dict[str, float]:
+def _row_metrics(step_batch: StepBatch, K: int, verifier_parts: set[str]) -> dict[str, float]:
     """Reward, pass rates, zero-variance fraction, length and truncation of the first round's rows."""
-    n = sb.first_round_groups * K
-    r = sb.rewards[:n]
+    n = step_batch.first_round_groups * K
+    r = step_batch.rewards[:n]
     zv = zero_variance_groups(r, K)
-    lengths = [len(x.completion_ids) for x in sb.rollouts[:n]]
+    lengths = [len(x.completion_ids) for x in step_batch.rollouts[:n]]
     m: dict[str, float] = {
         "reward/mean": float(r.mean()), "reward/std": float(r.std()) if n > 1 else 0.0,
         "zero_var_frac": float(zv.float().mean()),
         "completion/length": sum(lengths) / n, "completion/max_length": float(max(lengths)),
-        "completion/truncated": sum(x.finish_reason == "length" for x in sb.rollouts[:n]) / n,
+        "completion/truncated": sum(x.finish_reason == "length" for x in step_batch.rollouts[:n]) / n,
     }
-    for name, values in sb.parts.items():
+    for name, values in step_batch.parts.items():
         v = values[:n]
         m[f"reward/{name}"] = sum(v) / n
         if name in verifier_parts:
             m[f"pass/{name}"] = sum(x >= 1.0 for x in v) / n
-    reasons = sb.reasons[:n]
-    m["tokens/generated"] = float(sum(len(x.completion_ids) for x in sb.rollouts))  # every round's
+    reasons = step_batch.reasons[:n]
+    m["tokens/generated"] = float(sum(len(x.completion_ids) for x in step_batch.rollouts))  # every round's
     m["verifier/timeouts"] = float(sum("timeout" in x for x in reasons))
     m["verifier/crashes"] = float(sum("crashed" in x for x in reasons))
     m["verifier/errors"] = float(sum("verifier error" in x for x in reasons))
-    if sb.rounds > 1:
-        m["resample/rounds"] = float(sb.rounds)
-        m["zero_var_frac/all_rounds"] = float(zero_variance_groups(sb.rewards, K).float().mean())
+    if step_batch.rounds > 1:
+        m["resample/rounds"] = float(step_batch.rounds)
+        m["zero_var_frac/all_rounds"] = float(zero_variance_groups(step_batch.rewards, K).float().mean())
     return m
 
 
-def degenerate_message(step: int, sb: StepBatch, K: int, passed: list[bool] | None) -> str | None:
+def degenerate_message(step: int, step_batch: StepBatch, K: int, passed: list[bool] | None) -> str | None:
     """Words for a step where every group got identical rewards (the loss is ~0: nothing to learn).
 
     `passed`: per completion, whether the correctness verifier passed it (None: no verifier)."""
-    zv = zero_variance_groups(sb.rewards, K)
+    zv = zero_variance_groups(step_batch.rewards, K)
     if not bool(zv.all()):
         return None
-    values = sorted({round(float(x), 4) for x in sb.rewards})
-    common = collections.Counter(x for x in sb.reasons if x).most_common(1)
+    values = sorted({round(float(x), 4) for x in step_batch.rewards})
+    common = collections.Counter(x for x in step_batch.reasons if x).most_common(1)
     if passed is not None and not any(passed):
         why = ("no completion is correct: the problems are too hard for the policy now, or the verifier rejects "
                "its format")
@@ -566,27 +737,29 @@ def degenerate_message(step: int, sb: StepBatch, K: int, passed: list[bool] | No
             f"advantages are 0, so the policy-gradient loss is ~0 and this step teaches nothing - {why}{reason}")
 
 
-def passed_flags(sb: StepBatch, reward: Reward) -> list[bool] | None:
-    """Per completion of `sb`, whether the correctness verifier passed it: the first term of a composition, else
-    the whole verdict; None without a verifier."""
+def passed_flags(step_batch: StepBatch, reward: Reward) -> list[bool] | None:
+    """Per completion of `step_batch`, whether the correctness verifier passed it: the first term of a composition,
+    else the whole verdict; None without a verifier."""
     if reward.verifier is None:
         return None
-    src = sb.parts.get(reward.prefix + reward.correctness) if reward.correctness else sb.parts.get("verifier")
-    return [x >= 1.0 for x in (src if src is not None else sb.rewards.tolist())]
+    parts = step_batch.parts
+    src = parts.get(reward.prefix + reward.correctness) if reward.correctness else parts.get("verifier")
+    return [x >= 1.0 for x in (src if src is not None else step_batch.rewards.tolist())]
 
 
-def step_notes(done: int, m: dict[str, float], sb: StepBatch, K: int, reward: Reward) -> list[str]:
+def step_notes(done: int, m: dict[str, float], step_batch: StepBatch, K: int, reward: Reward) -> list[str]:
     """What a user asks when a run misbehaves, in words: verifier errors, timeouts and crashes, no signal."""
     notes = []
     if m["verifier/errors"]:
-        i = next(j for j, x in enumerate(sb.reasons) if "verifier error" in x)
-        notes.append(f"[grpo] step {done}: the verifier raised on {int(m['verifier/errors'])} of {len(sb.reasons)} "
-                     f"completions, scored 0 (e.g. training problem row {sb.problems[i // K].key + 1}: "
-                     f"{sb.reasons[i]})")
+        i = next(j for j, x in enumerate(step_batch.reasons) if "verifier error" in x)
+        notes.append(f"[grpo] step {done}: the verifier raised on {int(m['verifier/errors'])} of "
+                     f"{len(step_batch.reasons)} "
+                     f"completions, scored 0 (e.g. training problem row {step_batch.problems[i // K].key + 1}: "
+                     f"{step_batch.reasons[i]})")
     if m["verifier/timeouts"] or m["verifier/crashes"]:
         notes.append(f"[grpo] step {done}: {int(m['verifier/timeouts'])} verifier timeouts and "
                      f"{int(m['verifier/crashes'])} crashes, scored 0 (the step went on)")
-    degenerate = degenerate_message(done, sb, K, passed_flags(sb, reward))
+    degenerate = degenerate_message(done, step_batch, K, passed_flags(step_batch, reward))
     return notes + ([degenerate] if degenerate else [])
 
 
@@ -601,161 +774,18 @@ def progress_line(done: int, total: int, m: dict[str, float], timing: dict[str, 
             f"train {timing['train']:.2f}), {elapsed:.0f}s elapsed, eta {eta:.0f}s")
 
 
-def save_scored_rollouts(cfg: GRPOConfig, sb: StepBatch, run_dir: Path, step: int) -> list[dict]:
+def save_scored_rollouts(cfg: GRPOConfig, step_batch: StepBatch, run_dir: Path, step: int) -> list[dict]:
     """The step's rollouts (every round) with what a reader asks of each: the prompt, the reward and each
     reward part, the verifier's reason, the group advantage, whether its group was degenerate (`posttrain
     rollouts RUN_DIR` prints them). Returns them as table rows (for the trackers that show tables)."""
     from posttrain.rollout.records import save_step_rollouts
 
     K = cfg.group_size
-    adv = group_advantages(sb.rewards, K, estimator=cfg.estimator, std_scale=cfg.std_scale).tolist()
-    degenerate = zero_variance_groups(sb.rewards, K).tolist()
-    for i, (r, reward, reason) in enumerate(zip(sb.rollouts, sb.rewards.tolist(), sb.reasons)):
+    adv = group_advantages(step_batch.rewards, K, estimator=cfg.estimator, std_scale=cfg.std_scale).tolist()
+    degenerate = zero_variance_groups(step_batch.rewards, K).tolist()
+    for i, (r, reward, reason) in enumerate(zip(step_batch.rollouts, step_batch.rewards.tolist(), step_batch.reasons)):
         r.reward = reward
-        r.prompt = sb.problems[i // K].prompt
+        r.prompt = step_batch.problems[i // K].prompt
         r.extras.update(reason=reason, advantage=adv[i], zero_variance_group=bool(degenerate[i // K]),
-                        parts={k: v[i] for k, v in sb.parts.items()})
-    return save_step_rollouts(sb.rollouts, run_dir, step)
-
-
-# ----------------------------------------------------------------------------- train
-def train(res: Resolved, ensure) -> Path:
-    """GRPO on the recipe's task from the SFT model; returns the final model directory."""
-    from posttrain.models import load_model, load_reference, load_tokenizer, maybe_lora, save_model, token_budget
-    from posttrain.rollout import SamplingParams, default_backend, generate
-    from posttrain.verifiers.runner import VerifierPool
-
-    cfg: GRPOConfig = res.stage_cfg
-    check_config(cfg)
-    K, P = cfg.group_size, cfg.prompts_per_step
-    # Problems and the reward first: a bad row or a broken verifier stops before any model loads.
-    verifier, train_rows, train_source, problems, eval_problems = load_problems(res, cfg)
-    with VerifierPool(workers=cfg.verifier_workers, timeout_s=cfg.verifier_timeout_s or None) as pool:
-        if verifier is not None:
-            preflight(verifier, pool, train_rows, train_source, print)
-        rm_dir = ensure("rm") if cfg.reward_model == "train" else \
-            (Path(cfg.reward_model) if cfg.reward_model != "none" else None)
-        sft_dir = ensure("sft")
-
-        accelerator, say = loop.start_run(res, cfg.seed, cfg.resume)
-        run_dir, main, device = res.stage_dir(), accelerator.is_main_process, accelerator.device
-        rank, world = accelerator.process_index, accelerator.num_processes
-        tokenizer = load_tokenizer(sft_dir, res.model)
-        model = maybe_lora(res, load_model(sft_dir, res.model.dtype, device=device), say)  # LoRA: adapters start at 0
-        budget = token_budget(res.run.micro_batch_tokens, model)  # padded tokens per micro-batch (memory)
-        # beta = 0: no reference model at all; LoRA: the policy with its adapters off (no copy of the weights)
-        ref_model = load_reference(res, model, sft_dir, device) if cfg.beta > 0 else None
-        problems = tokenize_problems(tokenizer, problems, "training", cfg.max_new_tokens, res.model.max_length, say)
-        eval_problems = tokenize_problems(tokenizer, eval_problems, "held-out", cfg.max_new_tokens,
-                                          res.model.max_length, say)
-        if len(problems) < P:
-            raise loop.TrainingError(f"only {len(problems)} training prompts fit, fewer than prompts_per_step={P}")
-        reward = build_reward(verifier, pool, rm_dir, device, timeout_s=cfg.verifier_timeout_s,
-                              on_error=cfg.on_verifier_error, verifier_weight=cfg.verifier_weight,
-                              reward_model_weight=cfg.reward_model_weight)
-        held = HeldOut(eval_problems, reward, cfg.max_new_tokens, min(cfg.eval_rows, len(eval_problems)),
-                       min(cfg.final_eval_rows, len(eval_problems)),
-                       start="base" if res.model.start_from == "base" else "SFT")
-        # pi_old recomputed: asked for, rollout correction (it weighs pi_old against the sampler), a truncated sampler
-        # (top-p) at temperature != 1, or vLLM rollouts
-        recompute_old = cfg.old_logprobs == "recompute" or cfg.rollout_correction != "none" \
-            or (cfg.temperature != 1.0 and cfg.top_p < 1.0) or default_backend() == "vllm"
-        optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
-        scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps * cfg.mu * cfg.minibatches,
-                                         cfg.schedule, cfg.min_lr_ratio)  # it counts optimizer updates
-        model, optimizer = accelerator.prepare(model, optimizer)
-        policy = accelerator.unwrap_model(model)
-        ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
-        metrics = loop.open_metrics(res, cfg.max_steps, main, "[grpo] ")
-        state = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="grpo")
-        start, saved = state["step"], state["extra"].get("curriculum")
-        curriculum = None if cfg.prompt_sampling == "uniform" else Curriculum.fresh(len(problems)) if saved is None \
-            else Curriculum(torch.tensor(saved["rates"]), torch.tensor(saved["seen"], dtype=torch.bool))
-        index_of = {p.key: i for i, p in enumerate(problems)}  # a group's problem -> its position in `problems`
-        baseline = held.sft_baseline(policy, tokenizer, run_dir / "sft_eval.json", start, metrics, say) if main else {}
-        say(describe_run(cfg, reward, len(problems), rm_dir, recompute_old, world, device, budget))
-        rounds = 1 + (cfg.max_resample_rounds if cfg.zero_variance == "resample" else 0)
-        timing: dict[str, float] = collections.defaultdict(float)
-        t_start = time.time()
-        for step in range(start, cfg.max_steps):
-            done = step + 1
-            timing.clear()
-            t_step = time.time()
-            saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
-            evaluating = cfg.eval_every and done % cfg.eval_every == 0
-            with loop.naming_checkpoint(ckpt):
-                # ---- rollout, in rounds: process r takes positions r, r + W, ... of the round's global prompt
-                # batch; DAPO dynamic sampling (zero_variance=resample) adds rounds until P groups are informative
-                groups, scored, first_round, drawn = [], 0, 0, []
-                for rnd in range(rounds):
-                    # the global batch: the data order (a resampling round: its own order), or the curriculum's draw
-                    idx = loop.batch_indices(len(problems), P, round_order_seed(cfg.seed, rnd), step) \
-                        if curriculum is None else \
-                        curriculum.pick(cfg, P, loop.stream_seed(cfg.seed, "grpo/curriculum", step, rnd), drawn)
-                    drawn += idx
-                    mine = sharding.positions(P, rank, world)  # this process's positions in it
-                    ps = [problems[idx[i]] for i in mine]
-                    t0 = time.time()
-                    params = SamplingParams(n=K, max_new_tokens=cfg.max_new_tokens, temperature=cfg.temperature,
-                                            top_p=cfg.top_p, seed=loop.stream_seed(cfg.seed, "grpo/sample", step, rnd))
-                    out = generate(policy, tokenizer, [p.prompt_ids for p in ps], params,
-                                   prompt_keys=[p.key for p in ps]) if ps else []  # none: more processes than prompts
-                    # ---- score (in the verifier pool), then gathered: every process holds the round's groups
-                    t1 = time.time()
-                    new, n = gather_groups(reward, accelerator, mine, score_groups(reward, ps, out, K, step), step)
-                    timing["sample"] += t1 - t0
-                    timing["score"] += time.time() - t1
-                    groups, scored, first_round = groups + new, scored + n, first_round or len(new)
-                    sb = StepBatch.of(groups, first_round, rnd + 1)
-                    if int((~zero_variance_groups(sb.rewards, K)).sum()) >= P:  # informative groups
-                        break
-                m = _row_metrics(sb, K, reward.verifier_parts)
-                if curriculum is not None:  # every process holds every group: the same table everywhere
-                    curriculum.update(cfg, [index_of[p.key] for p in sb.problems], passed_flags(sb, reward))
-                    m.update(curriculum.metrics())
-                # ---- advantages of the kept groups; pi_old (when recomputed) and reference log-probs, no grad
-                t0 = time.time()
-                rows = loss_rows(cfg, sb, accelerator, tokenizer.pad_token_id, policy if recompute_old else None,
-                                 ref_model, budget)
-                m.update(correct_rows(cfg, rows))  # pi_old recomputed: the sampler's gap, rollout correction
-                # ---- update: mu passes x minibatches of clipped-ratio steps
-                m.update(update(cfg, accelerator, model, optimizer, scheduler, rows, step, budget,
-                                sampler_old=not recompute_old))
-                timing["train"] = time.time() - t0
-                if saving or evaluating:
-                    loop.check_weights(done, model)
-
-            # ---- log: metrics.jsonl every step, problems in words, a console line every log_every steps
-            m["verifier/scored"] = float(scored)  # distinct completions scored (duplicates reuse a score)
-            m.update({f"time/{k}": v for k, v in timing.items()})
-            m["time/step"] = time.time() - t_step
-            metrics.log(done, m, console=False)
-            for note in step_notes(done, m, sb, K, reward):
-                say(note)
-            if main and not res.run.quiet and (done % cfg.log_every == 0 or done == cfg.max_steps):
-                print(progress_line(done, cfg.max_steps, m, timing, time.time() - t_start, start), flush=True)
-            if main and cfg.save_rollouts_every and done % cfg.save_rollouts_every == 0:
-                table = save_scored_rollouts(cfg, sb, run_dir, done)
-                metrics.log_table("rollouts", table, done)
-            # ---- eval
-            if main and held.n_eval and evaluating and done != cfg.max_steps:
-                em = held.summarise(held.evaluate(policy, tokenizer, held.n_eval), held.n_eval)
-                metrics.log(done, em, console=False)
-                say(f"[grpo] step {done} eval, {held.n_eval} held-out problems: "
-                    + ", ".join(f"{k.removeprefix('eval/')} {v:.3f}" for k, v in em.items()))
-            # ---- checkpoint
-            if saving:
-                ckpt.save(done, model, optimizer, scheduler, {"step": done}, None if curriculum is None else
-                          {"curriculum": {"rates": curriculum.rates.tolist(), "seen": curriculum.seen.tolist()}})
-
-        final = run_dir / "final"
-        whole = loop.full_state_dict(accelerator, model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
-        if main:
-            save_model(policy, tokenizer, final, state_dict=whole)
-            say(f"[grpo] saved {final}")
-            report = held.compare(policy, tokenizer, baseline, metrics, cfg.max_steps, say)
-            loop.write_json(run_dir / "eval.json", {"model": str(final), "sft": str(sft_dir), **report})
-            metrics.close(report)
-        metrics.close()
-        accelerator.wait_for_everyone()
-        return final
+                        parts={k: v[i] for k, v in step_batch.parts.items()})
+    return save_step_rollouts(step_batch.rollouts, run_dir, step)
