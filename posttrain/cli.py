@@ -202,13 +202,12 @@ def validate(recipe: str, overrides: list[str]) -> list[Resolved]:
     """`posttrain validate`: `recipe_stages`, then each stage's own range checks (its trainer's `check_config`,
     where it has one): the ConfigErrors a run would raise before loading a model."""
     import importlib
-    import inspect
 
     checked = recipe_stages(recipe, overrides)
     for res in checked:
         check = getattr(importlib.import_module(STAGES[res.stage].module), "check_config", None)
         if check is not None:
-            check(res.stage_cfg) if len(inspect.signature(check).parameters) == 1 else check(res.stage_cfg, 1)
+            check(res.stage_cfg)
     return checked
 
 

@@ -160,8 +160,8 @@ def test_entropy_bonus_and_value_clipping_flags():
     cm = torch.tensor([[False, True, True], [False, True, False]])
     logps, old = -torch.rand(2, 3, generator=g), -torch.rand(2, 3, generator=g)
     ent, adv = torch.rand(2, 3, generator=g), torch.randn(2, 3, generator=g)
-    base, _ = ppo.policy_loss(ppo.PPOConfig(entropy_coef=0.0), logps, ent, old, adv, cm)
-    bonus, m = ppo.policy_loss(ppo.PPOConfig(entropy_coef=0.1), logps, ent, old, adv, cm)
+    base, _ = ppo.actor_loss(ppo.PPOConfig(entropy_coef=0.0), logps, ent, old, adv, cm)
+    bonus, m = ppo.actor_loss(ppo.PPOConfig(entropy_coef=0.1), logps, ent, old, adv, cm)
     mean_ent = (ent[0, 1] + ent[0, 2] + ent[1, 1]) / 3
     assert m["entropy"] == pytest.approx(float(mean_ent))
     torch.testing.assert_close(bonus, base - 0.1 * mean_ent)
