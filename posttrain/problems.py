@@ -41,6 +41,17 @@ class Problem:
     reference: Any
     key: int
     prompt_ids: list[int] = field(default_factory=list)
+    env_problem: dict[str, Any] | None = None  # with an environment: the row its `reset` starts an episode from
+
+
+def env_problem(row: dict[str, Any]) -> dict[str, Any]:
+    """A row as an environment's problem: its fields, with `prompt` the question (a conversational row's first user
+    message: a task's demonstration rows hold the whole solved conversation) and `answer` its reference."""
+    out = {k: v for k, v in row.items() if k not in ("messages", "completion", "train_from")}
+    if "messages" in row:
+        out["prompt"] = next(m["content"] for m in row["messages"] if m["role"] == "user")
+    out["answer"] = row_reference(row)
+    return out
 
 
 def _present(value: Any) -> bool:
@@ -173,8 +184,14 @@ def load_problems(res, cfg, stage: str, *, schema: str = "verifiable") -> Proble
     train_rows, train_source = split_rows(res.task, "train", cfg.train_file, schema)
     eval_rows, eval_source = split_rows(res.task, "eval", cfg.eval_file, schema)
     eval_rows = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)]
-    verifier = build_verifier(cfg.verifier, cfg.verifier_options, task, train_rows, stage=stage)
-    if verifier is not None:
+    env_spec = getattr(cfg, "env", "")
+    verifier = None if env_spec else build_verifier(cfg.verifier, cfg.verifier_options, task, train_rows, stage=stage)
+    if env_spec:  # the environment rewards whole episodes; its problems are the rows themselves
+        problems = [Problem(env_problem(r)["prompt"], row_reference(r), i, env_problem=env_problem(r))
+                    for i, r in enumerate(train_rows)]
+        eval_problems = [Problem(env_problem(r)["prompt"], row_reference(r), i, env_problem=env_problem(r))
+                         for i, r in enumerate(eval_rows)]
+    elif verifier is not None:
         problems, skipped = check_problems(train_rows, train_source, cfg.on_bad_rows, stage=stage)
         eval_problems, eval_skipped = check_problems(eval_rows, eval_source, cfg.on_bad_rows, stage=stage)
         for n, what, rows in ((skipped, train_source, train_rows), (eval_skipped, eval_source, eval_rows)):
@@ -201,6 +218,13 @@ class Reward:
     verifier_parts: set[str]  # reward parts that are verifier verdicts (logged as pass/<part> too)
     correctness: str | None  # the first term of a composition: eval/accuracy's part
     prefix: str  # "verifier/" when a WeightedScorer prefixes its scorers' parts
+    env: Any = None  # a multi-turn environment (posttrain.verifiers.envs): episodes replace single completions
+    runner: Any = None  # its ToolRunner
+
+
+def build_env_reward(env, runner) -> Reward:
+    """The reward of a run in a multi-turn environment: `env.reward` of each episode (no verifier, no scorer)."""
+    return Reward(None, None, None, None, set(), None, "", env, runner)
 
 
 def build_reward(verifier, pool, rm_dir: Path | None, device, *, timeout_s: float = 0.0, on_error: str = "zero",
@@ -307,6 +331,16 @@ def sample_and_score(accelerator, model, tokenizer, problems: list[Problem], idx
     positions = sharding.positions(len(idx), accelerator.process_index, accelerator.num_processes)
     local = [problems[idx[i]] for i in positions]
     t0 = time.time()
+    if reward is not None and reward.env is not None:  # multi-turn episodes, rewarded by the environment
+        from posttrain.rollout.multiturn import generate_episodes
+
+        out = generate_episodes(model, tokenizer, reward.env, [p.env_problem for p in local], params,
+                                prompt_keys=[p.key for p in local], runner=reward.runner) if local else []
+        t1 = time.time()
+        mine = [Group(p, out[g * K:(g + 1) * K], [r.reward for r in out[g * K:(g + 1) * K]],
+                      [r.extras["episode"]["finish"] for r in out[g * K:(g + 1) * K]], {}) for g, p in enumerate(local)]
+        groups = sharding.gather_rows(accelerator, mine, positions)
+        return Round(groups, len(out), t1 - t0, time.time() - t1)
     out = generate(model, tokenizer, [p.prompt_ids for p in local], params,
                    prompt_keys=[p.key for p in local]) if local else []
     t1 = time.time()
@@ -338,6 +372,8 @@ class HeldOut:
         from posttrain.rollout import SamplingParams, generate
 
         ps = self.problems[:n]
+        if self.reward.env is not None:
+            return self.evaluate_episodes(policy, tokenizer, ps)
         rollouts = generate(policy, tokenizer, [p.prompt_ids for p in ps],
                             SamplingParams(n=1, max_new_tokens=self.max_new_tokens, greedy=True),
                             prompt_keys=[p.key for p in ps], progress=Progress(f"[{self.stage}] held-out eval"))
@@ -350,6 +386,19 @@ class HeldOut:
         if self.reward.rm_scorer is not None:
             ev["rm"] = self.reward.rm_scorer.score(prompts, texts).rewards
         return ev
+
+    def evaluate_episodes(self, policy, tokenizer, ps: list[Problem]) -> dict[str, Any]:
+        """Greedy episodes of held-out problems in the environment: final answers, rewards, whole transcripts."""
+        from posttrain.rollout.multiturn import generate_episodes
+
+        rollouts = generate_episodes(policy, tokenizer, self.reward.env, [p.env_problem for p in ps], greedy=True,
+                                     prompt_keys=[p.key for p in ps], runner=self.reward.runner)
+        return {"texts": [r.text for r in rollouts], "lengths": [len(r.completion_ids) for r in rollouts],
+                "truncated": [r.finish_reason == "length" for r in rollouts],
+                "reward": [r.reward for r in rollouts], "parts": {}, "reasons": [r.extras["episode"]["finish"]
+                                                                              for r in rollouts],
+                "episodes": [r.extras["episode"] for r in rollouts],
+                "transcripts": [tokenizer.decode(r.completion_ids) for r in rollouts]}
 
     def summarise(self, ev: dict[str, Any], n: int) -> dict[str, float]:
         """eval/* metrics of the first n rows of an `evaluate` result."""
@@ -367,6 +416,10 @@ class HeldOut:
             m["eval/accuracy"] = sum(x >= 1.0 for x in src[:n]) / n
         if "rm" in ev:
             m["eval/rm"] = sum(ev["rm"][:n]) / n
+        if "episodes" in ev:  # env/turns, env/tool_calls, ... of the held-out episodes
+            from posttrain.verifiers.envs import episode_metrics
+
+            m.update({f"eval/{k}": v for k, v in episode_metrics(ev["episodes"][:n]).items()})
         return m
 
     def log_eval(self, policy, tokenizer, metrics: loop.MetricsLog, step: int, say) -> None:
@@ -377,7 +430,8 @@ class HeldOut:
             + ", ".join(f"{k.removeprefix('eval/')} {v:.3f}" for k, v in summary.items()))
 
     def samples(self, ev: dict[str, Any]) -> list[dict[str, str]]:
-        return [{"prompt": p.prompt, "completion": t} for p, t in zip(self.problems[:10], ev["texts"])]
+        texts = ev.get("transcripts", ev["texts"])  # an episode: every turn, tool results included
+        return [{"prompt": p.prompt, "completion": t} for p, t in zip(self.problems[:10], texts)]
 
     def sft_baseline(self, policy, tokenizer, path: Path, start: int, metrics: loop.MetricsLog, say) -> dict:
         """The SFT model's numbers: measured before step 1 (logged at step 0), read back from `path` on resume."""

@@ -62,7 +62,8 @@ def demonstration(problem: dict[str, Any], recover: bool, k: int = 0) -> list[di
 
 
 def make_examples(n: int, seed: int, split: Literal["train", "eval"]) -> list[dict[str, Any]]:
-    """`n` rows of `split`: {"messages", "answer", "meta": {"task", "reference", "expression"}}."""
+    """`n` rows of `split`: {"messages", "train_from", "prompt" (the messages before the answer), "completion" (the
+    answer), "answer", "meta": {"task", "reference", "expression"}}."""
     out: list[dict[str, Any]] = []
     seen: set[str] = set()
     batch = 0
@@ -72,8 +73,10 @@ def make_examples(n: int, seed: int, split: Literal["train", "eval"]) -> list[di
                 continue
             seen.add(p["expression"])
             k = len(out)
-            out.append({"messages": demonstration(p, recover=k % RECOVERY_EVERY == RECOVERY_EVERY - 1, k=k),
-                        "answer": p["answer"],
+            messages = demonstration(p, recover=k % RECOVERY_EVERY == RECOVERY_EVERY - 1, k=k)
+            # the shape posttrain.data gives a conversational SFT row: every assistant turn trained
+            out.append({"messages": messages, "train_from": 0, "prompt": messages[:-1],
+                        "completion": messages[-1]["content"], "answer": p["answer"],
                         "meta": {"task": NAME, "reference": p["answer"], "expression": p["expression"]}})
             if len(out) == n:
                 break

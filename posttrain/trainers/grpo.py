@@ -113,14 +113,21 @@ from posttrain.advantages import curriculum_weights, group_advantages, track_pas
 from posttrain.config import ConfigError, Resolved
 from posttrain.logprobs import masked_mean, sequence_logprobs
 from posttrain.losses import aggregate_token_loss, kl_penalty, policy_loss, rollout_correction, sampler_mismatch
-from posttrain.problems import (HeldOut, Problem, Reward, build_reward, load_problems, preflight, sample_and_score,
-                                tokenize_problems)
+from posttrain.problems import (HeldOut, Problem, Reward, build_env_reward, build_reward, load_problems, preflight,
+                                sample_and_score, tokenize_problems)
+from posttrain.rollout.multiturn import episode_metrics
 
 
 @dataclass
 class GRPOConfig:
     verifier: str = "auto"
     """Reward verifier spec ("countdown", "0.9*math + 0.1*format", "file.py:name"); auto: the task's; none: RM only."""
+    env: str = ""
+    """A multi-turn environment with tools ("calc", an entry point, or "file.py:Name"; `posttrain envs` lists them):
+    each sample is an episode (turns, tool calls, tool results: posttrain.rollout.multiturn) rewarded by the
+    environment; the loss covers the sampled tokens only. Empty: single completions scored by `verifier`."""
+    env_options: dict[str, Any] = field(default_factory=dict)
+    """Keyword options of the environment, its limits included (e.g. {max_turns: 3, tool_timeout_s: 2})."""
     verifier_options: dict[str, Any] = field(default_factory=dict)
     """Keyword options of a single (not composed) verifier, e.g. {partial_credit: true} for code."""
     verifier_weight: float = 1.0
@@ -273,8 +280,10 @@ def check_config(cfg: GRPOConfig) -> None:
                   f"{cfg.curriculum_decay}")
     if not cfg.rollout_correction_cap > 1:
         raise bad(f"rollout_correction_cap must be > 1, got {cfg.rollout_correction_cap}")
-    if cfg.verifier == "none" and cfg.reward_model == "none":
+    if cfg.verifier == "none" and cfg.reward_model == "none" and not cfg.env:
         raise bad("verifier=none and reward_model=none: there is no reward; set one of them")
+    if cfg.env and (cfg.reward_model != "none" or cfg.verifier not in ("auto", "none")):
+        raise bad(f"env={cfg.env!r} rewards whole episodes itself: leave verifier (auto) and reward_model (none) unset")
 
 
 # ----------------------------------------------------------------------------- train
@@ -293,6 +302,8 @@ def train(res: Resolved, ensure) -> Path:
                 # ---- rollout and score, in rounds (DAPO dynamic sampling: more rounds until P informative groups)
                 step_batch, scored, timing = rollout_rounds(run, step)
                 m = _row_metrics(step_batch, cfg.group_size, run.reward.verifier_parts)
+                if run.reward.env is not None:  # turns, tool calls and their errors, environment tokens
+                    m.update(episode_metrics(step_batch.rollouts))
                 if run.curriculum is not None:  # every process holds every group: the same table everywhere
                     run.curriculum.update(cfg, [run.index_of[p.key] for p in step_batch.problems],
                                           passed_flags(step_batch, run.reward))
@@ -361,6 +372,7 @@ def setup(res: Resolved, cfg: GRPOConfig, ensure, stack: contextlib.ExitStack) -
     model's held-out numbers."""
     from posttrain.models import is_model_dir, load_model, load_reference, load_tokenizer, maybe_lora, token_budget
     from posttrain.rollout import default_backend
+    from posttrain.verifiers.envs import ToolRunner
     from posttrain.verifiers.runner import VerifierPool
 
     P = cfg.prompts_per_step
@@ -371,6 +383,7 @@ def setup(res: Resolved, cfg: GRPOConfig, ensure, stack: contextlib.ExitStack) -
     pool = stack.enter_context(VerifierPool(workers=cfg.verifier_workers, timeout_s=cfg.verifier_timeout_s or None))
     if verifier is not None:
         preflight(verifier, pool, train_rows, train_source, print)
+    env = load_env(cfg)
     rm_dir = ensure("rm") if cfg.reward_model == "train" else \
         (Path(cfg.reward_model) if cfg.reward_model != "none" else None)
     sft_dir = ensure("sft")
@@ -387,9 +400,9 @@ def setup(res: Resolved, cfg: GRPOConfig, ensure, stack: contextlib.ExitStack) -
                                       res.model.max_length, say)
     if len(problems) < P:
         raise loop.TrainingError(f"only {len(problems)} training prompts fit, fewer than prompts_per_step={P}")
-    reward = build_reward(verifier, pool, rm_dir, device, timeout_s=cfg.verifier_timeout_s,
-                          on_error=cfg.on_verifier_error, verifier_weight=cfg.verifier_weight,
-                          reward_model_weight=cfg.reward_model_weight)
+    reward = build_env_reward(env, stack.enter_context(ToolRunner())) if env is not None else \
+        build_reward(verifier, pool, rm_dir, device, timeout_s=cfg.verifier_timeout_s, on_error=cfg.on_verifier_error,
+                     verifier_weight=cfg.verifier_weight, reward_model_weight=cfg.reward_model_weight)
     held_out = HeldOut(eval_problems, reward, cfg.max_new_tokens, min(cfg.eval_rows, len(eval_problems)),
                        min(cfg.final_eval_rows, len(eval_problems)),
                        start="base" if res.model.start_from == "base" else "SFT")
@@ -414,6 +427,18 @@ def setup(res: Resolved, cfg: GRPOConfig, ensure, stack: contextlib.ExitStack) -
     return GRPORun(res, cfg, accelerator, say, run_dir, main, sft_dir, tokenizer, model, policy, ref_model, budget,
                    recompute_old, optimizer, scheduler, ckpt, metrics, problems,
                    {p.key: i for i, p in enumerate(problems)}, reward, held_out, curriculum, rounds, start, baseline)
+
+
+def load_env(cfg: GRPOConfig):
+    """The run's environment (`grpo.env`), or None; a bad spec or option is one ConfigError line."""
+    if not cfg.env:
+        return None
+    from posttrain.verifiers.envs import get_env
+
+    try:
+        return get_env(cfg.env, **cfg.env_options)
+    except (ValueError, ImportError) as e:
+        raise ConfigError(f"grpo.env: {e}") from None
 
 
 def finish(run: GRPORun) -> Path:
@@ -676,7 +701,9 @@ def describe_run(cfg: GRPOConfig, reward: Reward, n_problems: int, rm_dir: Path 
     desc = " + ".join(x for x in (
         (f"{cfg.verifier_weight:g} * " if reward.rm_scorer is not None else "") + f"verifier {reward.verifier.name}"
         if reward.verifier is not None else "",
-        f"{cfg.reward_model_weight:g} * reward model {rm_dir}" if reward.rm_scorer is not None else "") if x)
+        f"{cfg.reward_model_weight:g} * reward model {rm_dir}" if reward.rm_scorer is not None else "",
+        f"environment {reward.env.name} (episodes of at most {reward.env.limits.max_turns} turns, tools: "
+        f"{', '.join(reward.env.tool_functions()) or 'none'})" if reward.env is not None else "") if x)
     return (f"[grpo] {n_problems} training problems, {cfg.prompts_per_step} prompts x {cfg.group_size} samples per "
             f"step, {cfg.max_steps} steps ({cfg.mu} pass(es) x {cfg.minibatches} update(s) each); reward: {desc}; "
             f"{cfg.estimator} advantages ({cfg.std_scale} std), {cfg.policy_loss} policy loss, {cfg.aggregation}, "
