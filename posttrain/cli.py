@@ -5,6 +5,7 @@
     posttrain recipes cp NAME PATH                      a copy to edit, runnable with --recipe PATH
     posttrain validate --recipe NAME|PATH [stage.k=v]   every stage resolved and range-checked, no model loaded
     posttrain rollouts RUN_DIR [--step N] [--worst K]   a GRPO / PPO / online DPO run's saved rollouts, readably
+    posttrain envs                                      multi-turn environments with tools (grpo.env)
     posttrain plot RUN_DIR [--out DIR]                  PNGs of a stage's metrics.jsonl (RUN_DIR/plots/)
     posttrain sft  --recipe tiny-summarize [k=v ...]     run a stage (builds what it needs first)
     posttrain eval --recipe tiny-summarize [model=PATH] [reference=PATH]
@@ -282,7 +283,42 @@ def rollouts_command(rest: list[str]) -> int:
             print(f"  reason: {ex['reason']}")
         shown = prompt_text(r.prompt) if r.prompt else f"<{len(r.prompt_ids)} token ids>"
         print("  prompt: " + " ".join(shown.split())[:300])
-        print("  completion: " + r.text.replace("\n", "\n              "))
+        if "episode" in ex:  # a multi-turn episode: its turns, tool calls and results
+            print(episode_text(ex["episode"]))
+        else:
+            print("  completion: " + r.text.replace("\n", "\n              "))
+    return 0
+
+
+def episode_text(episode: dict) -> str:
+    """An episode's turns for `posttrain rollouts`: each assistant turn, its tool calls with their results (or
+    errors), per-turn rewards, and how the episode ended."""
+    lines = [f"  episode: {len(episode['turns'])} turn(s), ended by {episode['finish']}, "
+             f"{episode.get('sampled_tokens', '?')} sampled + {episode.get('env_tokens', '?')} environment tokens"]
+    for k, t in enumerate(episode["turns"], 1):
+        reward = f", reward {t['reward']:.3g}" if t.get("reward") is not None else ""
+        lines.append(f"  [assistant {k}] ({t['sampled_tokens']} tokens{reward}) " + t["text"].replace("\n", "\n      "))
+        for c in t["tool_calls"]:
+            call = f"{c['name']}({', '.join(f'{a}={v!r}' for a, v in (c['arguments'] or {}).items())})" \
+                if c["name"] else c["raw"][:80]
+            status = f" [{c['error']}]" if c["error"] else ""
+            lines.append(f"    [tool] {call} -> {c['content'][:200]}{status}")
+    return "\n".join(lines)
+
+
+def envs_command(rest: list[str]) -> int:
+    """`posttrain envs`: the multi-turn environments available (built-in, entry points in group posttrain.envs);
+    `grpo.env=path/to/file.py:Name` loads one from a file."""
+    from posttrain.verifiers.envs import list_envs
+
+    p = argparse.ArgumentParser(prog="posttrain envs", description="list the multi-turn environments (grpo.env)")
+    p.parse_args(rest)
+    rows = list_envs()
+    width, owidth = max(len(r[0]) for r in rows), max(len(r[2]) for r in rows)
+    print(f"{'name':{width}s}  {'origin':{owidth}s}  description")
+    for name, desc, origin in rows:
+        print(f"{name:{width}s}  {origin:{owidth}s}  {desc}")
+    print("also: grpo.env=path/to/file.py:Name (an Environment subclass in a file)")
     return 0
 
 
@@ -336,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     top = argparse.ArgumentParser(prog="posttrain", description="LLM post-training on a laptop CPU and beyond.",
                                   epilog="stages: " + ", ".join(f"{k} ({v.help})" for k, v in STAGES.items()))
-    top.add_argument("command", help="recipes | validate | rollouts | verifiers | verify | models | "
+    top.add_argument("command", help="recipes | validate | rollouts | plot | verifiers | verify | envs | models | "
                      + " | ".join(STAGES))
     if not argv or argv[0] in ("-h", "--help"):
         top.print_help()
@@ -349,6 +385,8 @@ def main(argv: list[str] | None = None) -> int:
             return rollouts_command(rest)
         if cmd == "plot":
             return plot_command(rest)
+        if cmd == "envs":
+            return envs_command(rest)
         if cmd == "validate":
             p = argparse.ArgumentParser(prog="posttrain validate", description="resolve and check every stage of a "
                                         "recipe (types, keys, ranges) without loading a model")
@@ -367,8 +405,8 @@ def main(argv: list[str] | None = None) -> int:
 
             return model_files.main(rest)
         if cmd not in STAGES:
-            raise ConfigError(f"unknown command {cmd!r}; choose one of: recipes, validate, rollouts, verifiers, verify, "
-                              "models, "
+            raise ConfigError(f"unknown command {cmd!r}; choose one of: recipes, validate, rollouts, plot, verifiers, "
+                              "verify, envs, models, "
                               f"{', '.join(STAGES)}")
         cfg_cls, run = STAGES[cmd].load()
         if "-h" in rest or "--help" in rest:

@@ -51,7 +51,7 @@ def _steps(out: Path) -> list[dict]:
     return [r for r in rows if "reward/mean" in r]
 
 
-def test_episodes_train_end_to_end_with_the_trainers_log_probs_equal_to_the_samplers(chat_sft, tmp_path):
+def test_episodes_train_end_to_end_with_the_trainers_log_probs_equal_to_the_samplers(chat_sft, tmp_path, capsys):
     out = tmp_path / "run"
     assert main(_args(chat_sft, out, "old_logprobs=recompute", "zero_variance=keep", "save_rollouts_every=1")) == 0
     steps = _steps(out)
@@ -68,6 +68,10 @@ def test_episodes_train_end_to_end_with_the_trainers_log_probs_equal_to_the_samp
     multi = [r for r in rs if len(r.extras["episode"]["turns"]) > 1]
     assert multi and all(0 in r.completion_mask for r in multi)  # environment tokens, masked out of the loss
     assert all(len(r.completion_ids) == len(r.completion_mask) for r in rs)
+    capsys.readouterr()
+    assert main(["rollouts", str(out / "tiny-calc" / "grpo"), "--step", "2"]) == 0  # the turns, readably
+    shown = capsys.readouterr().out
+    assert "episode:" in shown and "[assistant 1]" in shown and "[tool] add(a=" in shown
     report = json.loads((out / "tiny-calc" / "grpo" / "eval.json").read_text())
     assert "eval/env/turns" in report["grpo"] and "<|tool|>" in report["samples"][0]["completion"] \
         or report["grpo"]["eval/env/turns"] == 1.0  # a sample shows the tool turn when the episode had one
@@ -106,3 +110,9 @@ def test_bad_environment_settings_are_one_line_errors(chat_sft, tmp_path, capsys
     assert "rewards whole episodes itself" in capsys.readouterr().err
     assert main(_args(chat_sft, tmp_path / "c", "env=calc", "env_options={max_turns: 0}")) == 2
     assert "Limits.max_turns must be a positive integer" in capsys.readouterr().err
+
+
+def test_posttrain_envs_lists_the_built_ins(capsys):
+    assert main(["envs"]) == 0
+    out = capsys.readouterr().out
+    assert "calc  built-in" in out and "file.py:Name" in out
