@@ -143,19 +143,20 @@ def split_rows(task_cfg, split: str, file: str | None, schema: str = "verifiable
     return tasks.load_split(task_cfg, split), f"task {task_cfg.name} ({split})"
 
 
-def tokenize_problems(tokenizer, ps: list[Problem], what: str, max_new_tokens: int, max_length: int,
+def tokenize_problems(tokenizer, problems: list[Problem], what: str, max_new_tokens: int, max_length: int,
                       say, *, stage: str = "grpo") -> list[Problem]:
     """Prompts tokenized once (the engine takes ids; the chat template when there is one); a prompt longer than
     max_length - max_new_tokens is dropped, with a count."""
     from posttrain.chat import encode_prompts
 
     kept = []
-    for p, x in zip(ps, encode_prompts(tokenizer, [p.prompt for p in ps])):
+    for p, x in zip(problems, encode_prompts(tokenizer, [p.prompt for p in problems])):
         if len(x) + max_new_tokens <= max_length:
             p.prompt_ids = list(x)
             kept.append(p)
-    if len(kept) < len(ps):
-        say(f"[{stage}] dropped {len(ps) - len(kept)}/{len(ps)} {what} prompts longer than model.max_length="
+    if len(kept) < len(problems):
+        say(f"[{stage}] dropped {len(problems) - len(kept)}/{len(problems)} {what} prompts longer than "
+            f"model.max_length="
             f"{max_length} - max_new_tokens={max_new_tokens}")
     return kept
 
@@ -181,10 +182,12 @@ def load_problems(res, cfg, stage: str, *, schema: str = "verifiable") -> Proble
         task = tasks.get_task(res.task.name)
     except ValueError as e:
         raise ConfigError(f"task.name: {e}") from None
+    env_spec = getattr(cfg, "env", "")
+    if env_spec:  # an environment's rows: a prompt (and what its reward reads, e.g. an answer), no verifier column
+        schema = "prompt"
     train_rows, train_source = split_rows(res.task, "train", cfg.train_file, schema)
     eval_rows, eval_source = split_rows(res.task, "eval", cfg.eval_file, schema)
     eval_rows = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)]
-    env_spec = getattr(cfg, "env", "")
     verifier = None if env_spec else build_verifier(cfg.verifier, cfg.verifier_options, task, train_rows, stage=stage)
     if env_spec:  # the environment rewards whole episodes; its problems are the rows themselves
         problems = [Problem(env_problem(r)["prompt"], row_reference(r), i, env_problem=env_problem(r))
@@ -264,19 +267,19 @@ class Group:
     parts: dict[str, list[float]]  # reward part -> K values
 
 
-def score_groups(reward: Reward, ps: list[Problem], out: list, K: int,
+def score_groups(reward: Reward, problems: list[Problem], out: list, K: int,
                  step: int) -> tuple[list[Group], str | None, int]:
     """This process's samples scored: (groups, the message of a verifier error under on_verifier_error=stop, the
     number of distinct completions scored). Identical completions of a prompt are scored once (verifiers and
     reward models are deterministic; a confident policy samples many duplicates, and a sandboxed check is costly)."""
     from posttrain.verifiers.runner import VerifierError
 
-    if not ps:
+    if not problems:
         return [], None, 0
     first: dict[tuple[int, str], int] = {}
-    slot = [first.setdefault((ps[i // K].key, r.text), len(first)) for i, r in enumerate(out)]
+    slot = [first.setdefault((problems[i // K].key, r.text), len(first)) for i, r in enumerate(out)]
     uniq = list(first)  # (problem key, text) in first-seen order
-    by_key = {p.key: p for p in ps}
+    by_key = {p.key: p for p in problems}
     try:
         su = reward.scorer.score([by_key[k].prompt for k, _ in uniq], [t for _, t in uniq],
                                  [by_key[k].reference for k, _ in uniq] if reward.verifier is not None else None)
@@ -285,20 +288,22 @@ def score_groups(reward: Reward, ps: list[Problem], out: list, K: int,
         return [], (f"verifier {reward.verifier.name!r} raised {e.exc_type} at step {step + 1} on a completion of "
                     f"training problem row {row}: {e.message} (on_verifier_error=stop)"), 0
     groups = []
-    for g, p in enumerate(ps):
+    for g, p in enumerate(problems):
         sl = [slot[g * K + j] for j in range(K)]
         groups.append(Group(p, out[g * K:(g + 1) * K], [su.rewards[i] for i in sl], [su.reasons[i] for i in sl],
                             {k: [v[i] for i in sl] for k, v in su.parts.items()}))
     return groups, None, len(uniq)
 
 
-def gather_groups(reward: Reward, accelerator, mine: list[int], scored: tuple[list[Group], str | None, int],
+def gather_groups(reward: Reward, accelerator, positions: list[int],
+                  scored: tuple[list[Group], str | None, int],
                   step: int) -> tuple[list[Group], int]:
     """Every process's `score_groups` of a round: the groups in global order, the distinct completions scored.
     A verifier error under on_verifier_error=stop on any process stops every process; so does a round where
     every check raised (that reward carries no signal)."""
     groups, error, n = scored
-    shards = sharding.gather_rows(accelerator, [(list(zip(mine, groups)), error, n)], [accelerator.process_index])
+    shards = sharding.gather_rows(accelerator, [(list(zip(positions, groups)), error, n)],
+                                  [accelerator.process_index])
     errors = [e for _, e, _ in shards if e]
     if errors:
         raise loop.TrainingError(errors[0])
@@ -337,9 +342,10 @@ def sample_and_score(accelerator, model, tokenizer, problems: list[Problem], idx
         out = generate_episodes(model, tokenizer, reward.env, [p.env_problem for p in local], params,
                                 prompt_keys=[p.key for p in local], runner=reward.runner) if local else []
         t1 = time.time()
-        mine = [Group(p, out[g * K:(g + 1) * K], [r.reward for r in out[g * K:(g + 1) * K]],
-                      [r.extras["episode"]["finish"] for r in out[g * K:(g + 1) * K]], {}) for g, p in enumerate(local)]
-        groups = sharding.gather_rows(accelerator, mine, positions)
+        episodes = [Group(p, out[g * K:(g + 1) * K], [r.reward for r in out[g * K:(g + 1) * K]],
+                          [r.extras["episode"]["finish"] for r in out[g * K:(g + 1) * K]], {})
+                    for g, p in enumerate(local)]
+        groups = sharding.gather_rows(accelerator, episodes, positions)
         return Round(groups, len(out), t1 - t0, time.time() - t1)
     out = generate(model, tokenizer, [p.prompt_ids for p in local], params,
                    prompt_keys=[p.key for p in local]) if local else []
@@ -371,28 +377,29 @@ class HeldOut:
         from posttrain.loop import Progress
         from posttrain.rollout import SamplingParams, generate
 
-        ps = self.problems[:n]
+        problems = self.problems[:n]
         if self.reward.env is not None:
-            return self.evaluate_episodes(policy, tokenizer, ps)
-        rollouts = generate(policy, tokenizer, [p.prompt_ids for p in ps],
+            return self.evaluate_episodes(policy, tokenizer, problems)
+        rollouts = generate(policy, tokenizer, [p.prompt_ids for p in problems],
                             SamplingParams(n=1, max_new_tokens=self.max_new_tokens, greedy=True),
-                            prompt_keys=[p.key for p in ps], progress=Progress(f"[{self.stage}] held-out eval"))
-        texts, prompts = [r.text for r in rollouts], [p.prompt for p in ps]
+                            prompt_keys=[p.key for p in problems],
+                            progress=Progress(f"[{self.stage}] held-out eval"))
+        texts, prompts = [r.text for r in rollouts], [p.prompt for p in problems]
         ev: dict[str, Any] = {"texts": texts, "lengths": [len(r.completion_ids) for r in rollouts],
                               "truncated": [r.finish_reason == "length" for r in rollouts]}
         if self.reward.eval_scorer is not None:
-            sr = self.reward.eval_scorer.score(prompts, texts, [p.reference for p in ps])
+            sr = self.reward.eval_scorer.score(prompts, texts, [p.reference for p in problems])
             ev.update(reward=sr.rewards, parts=sr.parts, reasons=sr.reasons)
         if self.reward.rm_scorer is not None:
             ev["rm"] = self.reward.rm_scorer.score(prompts, texts).rewards
         return ev
 
-    def evaluate_episodes(self, policy, tokenizer, ps: list[Problem]) -> dict[str, Any]:
+    def evaluate_episodes(self, policy, tokenizer, problems: list[Problem]) -> dict[str, Any]:
         """Greedy episodes of held-out problems in the environment: final answers, rewards, whole transcripts."""
         from posttrain.rollout.multiturn import generate_episodes
 
-        rollouts = generate_episodes(policy, tokenizer, self.reward.env, [p.env_problem for p in ps], greedy=True,
-                                     prompt_keys=[p.key for p in ps], runner=self.reward.runner)
+        rollouts = generate_episodes(policy, tokenizer, self.reward.env, [p.env_problem for p in problems],
+                                     greedy=True, prompt_keys=[p.key for p in problems], runner=self.reward.runner)
         return {"texts": [r.text for r in rollouts], "lengths": [len(r.completion_ids) for r in rollouts],
                 "truncated": [r.finish_reason == "length" for r in rollouts],
                 "reward": [r.reward for r in rollouts], "parts": {}, "reasons": [r.extras["episode"]["finish"]

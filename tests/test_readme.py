@@ -13,7 +13,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
 LINKED_DOCS = [README, REPO / "verifiers" / "README.md"]
-MAX_LINES = 290
+MAX_LINES = 284  # half of the 569 lines issue 33 found
 MAX_BYTES = 22_500
 
 INSTALL = ('python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install ".[dev]" '

@@ -116,3 +116,22 @@ def test_posttrain_envs_lists_the_built_ins(capsys):
     assert main(["envs"]) == 0
     out = capsys.readouterr().out
     assert "calc  built-in" in out and "file.py:Name" in out
+
+
+def test_the_readmes_environment_trains_without_touching_the_package(chat_sft, tmp_path):
+    """README.md's 'Your own environment, in one file' example, as written there, trains with posttrain grpo."""
+    readme = (Path(__file__).resolve().parents[3] / "README.md").read_text()
+    block = readme[readme.index("```python\n# capitals.py"):]
+    code = block[len("```python\n"):block.index("\n```")]
+    assert len(code.splitlines()) <= 35
+    (tmp_path / "capitals.py").write_text(code)
+    rows = [{"prompt": f"Capital of {c}?", "answer": a} for c, a in
+            {"Varnok": "Ilsa", "Zelpha": "Orun", "Quillo": "Metz"}.items()] * 4
+    data = tmp_path / "capitals.jsonl"
+    data.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    out = tmp_path / "run"
+    args = [a for a in _args(chat_sft, out) if not a.startswith("env=")]
+    assert main(args + [f"env={tmp_path / 'capitals.py'}:Capitals", f"grpo.train_file={data}",
+                        f"grpo.eval_file={data}"]) == 0
+    steps = _steps(out)
+    assert len(steps) == 2 and all("env/turns" in s for s in steps)
