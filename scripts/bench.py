@@ -42,6 +42,11 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             run.mixed_precision=bf16, GRPO also rollout.dtype=bfloat16; TRL bf16=True). ~20 min in all. The bf16
             rows run where bf16 is native and faster (`--real-bf16 auto`, the default: what run.mixed_precision=auto
             decides); on other CPUs bf16 is emulated, 2-5x slower than fp32, and `--real-bf16 yes` forces them.
+  multiturn multi-turn episodes with a tool (posttrain.rollout.multiturn; a random tiny chat model whose turns end
+            at eos after a few tokens, every turn answered by the calculator, <= 4 turns) against single-turn
+            rollouts of the same number of sampled tokens (ignore_eos) at each batch size; the time ratio next to
+            the ratio of decoding steps, (sampled + environment tokens) / sampled, and the tools' seconds. Ours
+            only: TRL's tool-calling GRPO is not run here (RESULTS.md, "Multi-turn rollouts").
   scaling   how cost grows with model size (--presets, default tiny and small) and sequence length: the
             rollout engine (batch 16, 32-token prompts, 64/128/256 new tokens; 64/128 with --quick) and a
             training step (forward + backward + AdamW on batch 8 of 64/128/256 tokens), tokens/s, time
@@ -1500,6 +1505,75 @@ def _real_trainers(args) -> dict:
           "generates under its autocast).")
     return out
 
+# ------------------------------------------------------------------ section: multiturn
+
+
+def bench_multiturn(args) -> dict:
+    """Multi-turn episodes (posttrain.rollout.multiturn) against single-turn rollouts of the same sampled tokens."""
+    from posttrain.chat import encode_prompts
+    from posttrain.rollout.multiturn import generate_episodes
+    from posttrain.tasks import calc as calc_task
+    from posttrain.verifiers.envs import Environment, Limits, ToolCall
+    from posttrain.verifiers.envs.calc import CalcEnv, calculator
+
+    class EveryTurnCalls(Environment):  # each turn that ends at eos computes something; at most 4 turns
+        name = "bench"
+        tools = (calculator,)
+        limits = Limits(max_turns=4, max_turn_tokens=32, max_total_tokens=256)
+
+        def parse_calls(self, text, episode=None):
+            return [ToolCall("calculator", {"expression": f"{len(text)}*{len(episode.turns)}+7"}, text)]
+
+        def reward(self, episode):
+            return 0.0
+
+    tok = train_tokenizer(calc_task.corpus(300, 0), vocab_size=512, split_digits=True, chat=True)
+    model = build_model(args.presets[0], tok, seed=0).eval()
+    env = EveryTurnCalls()
+    problems = CalcEnv.problems(max(args.batches), seed=1)
+    firsts = encode_prompts(tok, [env.reset(p) for p in problems])
+    with torch.no_grad():  # eos along the prompts' mean final state: turns end after a few to ~30 tokens
+        h = torch.cat([model.model(input_ids=torch.tensor([x])).last_hidden_state[0] for x in firsts]).mean(0)
+        model.lm_head.weight[tok.eos_token_id] = 0.45 * h / h.norm()
+    rows_out = []
+    print(f"\n{args.presets[0]}, calculator environment (every turn that ends at eos calls it; <= 4 turns x 32 tokens)")
+    print(f"{'batch':>5} {'turns':>6} {'sampled':>8} {'env tok':>8} {'episodes s':>11} {'single-turn s':>14} "
+          f"{'ratio':>7} {'steps ratio':>12} {'tool s':>7}")
+    for B in args.batches:
+        ps = problems[:B]
+
+        def episodes(seed=0):
+            return generate_episodes(model, tok, env, ps, n=1, seed=seed)
+
+        out = episodes()
+        sampled = sum(sum(r.completion_mask) for r in out)
+        env_tokens = sum(len(r.completion_ids) for r in out) - sampled
+        per_row = max(1, round(sampled / B))
+
+        def single(seed=0):
+            return generate(model, tok, firsts[:B], max_new_tokens=per_row, ignore_eos=True, seed=seed)
+
+        single()
+        t_ep, t_one = [], []
+        for r in range(args.repeats):
+            t_ep.append(_timed(lambda: episodes(0), "cpu"))
+            t_one.append(_timed(lambda: single(0), "cpu"))
+        med_ep, med_one = statistics.median(t_ep), statistics.median(t_one) * sampled / (per_row * B)
+        turns = sum(len(r.extras["episode"]["turns"]) for r in out) / B
+        tool_s = sum(c["seconds"] for r in out for t in r.extras["episode"]["turns"] for c in t["tool_calls"])
+        row = dict(batch=B, turns=turns, sampled=sampled, env_tokens=env_tokens, episodes_s=med_ep,
+                   single_s=med_one, ratio=med_ep / med_one, steps_ratio=(sampled + env_tokens) / sampled,
+                   tool_s=tool_s, episodes_times=t_ep, single_times=t_one)
+        rows_out.append(row)
+        print(f"{B:>5} {turns:>6.2f} {sampled:>8} {env_tokens:>8} {med_ep:>11.3f} {med_one:>14.3f} "
+              f"{row['ratio']:>6.2f}x {row['steps_ratio']:>11.2f}x {tool_s:>7.3f}", flush=True)
+    print("ratio = episodes time / single-turn time for the same sampled tokens (single-turn: ignore_eos, the mean "
+          "sampled tokens per row, scaled to the episodes' exact count); steps ratio = (sampled + environment "
+          "tokens) / sampled: the ratio expected when an environment token costs one decoding step, as it does "
+          "here (fed beside the other rows' sampling), before tool time and turn bookkeeping.")
+    return dict(rows=rows_out)
+
+
 
 SECTIONS = {
     "generate": bench_generate,
@@ -1510,6 +1584,7 @@ SECTIONS = {
     "grpo": bench_grpo,
     "distill": bench_distill,
     "scaling": bench_scaling,
+    "multiturn": bench_multiturn,
     "real": bench_real,
 }
 
