@@ -309,3 +309,16 @@ def test_the_reproductions_plot_each_run_with_posttrain_plot(tmp_path, script):
     assert written == {"grpo": "stage-plots/grpo"}
     pngs = sorted(p.name for p in (tmp_path / "report" / "stage-plots" / "grpo").glob("*.png"))
     assert pngs and all(n.endswith(".png") for n in pngs)
+
+
+def test_bench_multiturn_section_runs_and_counts_the_tokens(capsys):
+    """bench.py's multiturn section at small batches: every episode has turns, environment tokens and tool calls."""
+    from types import SimpleNamespace
+
+    bench = _load(SCRIPTS / "bench.py")
+    out = bench.bench_multiturn(SimpleNamespace(presets=["tiny"], batches=[1, 4], repeats=1))
+    assert [r["batch"] for r in out["rows"]] == [1, 4]
+    for r in out["rows"]:
+        assert r["turns"] >= 1 and r["sampled"] > 0 and r["env_tokens"] > 0 and r["ratio"] > 0
+        assert r["steps_ratio"] == (r["sampled"] + r["env_tokens"]) / r["sampled"]
+    assert "steps ratio" in capsys.readouterr().out
