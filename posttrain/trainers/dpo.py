@@ -64,7 +64,8 @@ import torch
 from posttrain import evaluation, loop, models, preferences, scoring, tasks
 from posttrain.config import ConfigError, Resolved
 from posttrain.losses import dpo_loss, kto_loss, orpo_loss, simpo_loss
-from posttrain.preferences import TokenizedPair, by_side, collate_pairs, pair_groups, pair_logps, reference_logps  # noqa: F401
+from posttrain.preferences import (TokenizedPair, by_side, collate_pairs, pair_groups, pair_logps,
+                                   reference_logps)
 
 
 @dataclass
@@ -155,6 +156,178 @@ class DPOConfig:
     """Continue from the newest checkpoint in the run directory."""
 
 
+def check_config(cfg: DPOConfig) -> None:
+    """Inconsistent settings are a ConfigError before anything runs."""
+    if cfg.online and cfg.online_every < 1:
+        raise ConfigError(f"dpo.online_every must be >= 1, got {cfg.online_every}")
+    if cfg.save_rollouts_every and (not cfg.online or cfg.save_rollouts_every % cfg.online_every):
+        raise ConfigError(f"dpo.save_rollouts_every={cfg.save_rollouts_every} saves the samples of online DPO's "
+                          f"regenerations: it needs online=true and a multiple of online_every={cfg.online_every}")
+    if cfg.label_smoothing and cfg.loss_type != "sigmoid":
+        raise ConfigError(f"dpo.label_smoothing applies to loss_type=sigmoid only (got loss_type={cfg.loss_type})")
+    if not 0.0 <= cfg.label_smoothing <= 0.5 or cfg.beta <= 0:
+        raise ConfigError("dpo.beta must be > 0 and dpo.label_smoothing in [0, 0.5]")
+    if cfg.simpo_gamma < 0:
+        raise ConfigError(f"dpo.simpo_gamma must be >= 0, got {cfg.simpo_gamma}")
+    if cfg.loss_type == "kto" and (cfg.online or cfg.chosen_nll_weight):
+        raise ConfigError("dpo.loss_type=kto trains on fixed labelled completions: online=true and chosen_nll_weight "
+                          "(RPO) are not supported with it")
+    if cfg.desirable_weight < 0 or cfg.undesirable_weight < 0:
+        raise ConfigError(f"dpo.desirable_weight and dpo.undesirable_weight must be >= 0, got {cfg.desirable_weight}, "
+                          f"{cfg.undesirable_weight}")
+
+
+# ----------------------------------------------------------------------------- train
+def train(res: Resolved, ensure) -> Path:
+    """Train the SFT model with DPO on preference pairs; returns the final model directory."""
+    cfg: DPOConfig = res.stage_cfg
+    check_config(cfg)
+    run = setup(res, cfg, ensure)  # pairs (checked first), the model, the reference, optimizer, resume, baseline
+    pool = run.pool
+    for step in range(run.start, cfg.max_steps):
+        done = step + 1
+        # ---- online pairs (detail 8): every online_every steps, fresh pairs from the policy replace the pool
+        if cfg.online and step > 0 and step % cfg.online_every == 0 and pool.start != step:
+            pool = refresh_pool(step, cfg, run.policy, run.tokenizer, res.model.max_length, run.data.online_rows,
+                                online_labeler(run), run.ref, run.budget, run.metrics, run.say,
+                                run.run_dir if run.main else None)
+        # ---- batch: this process's share of the step's pairs (indices into the pool), in micro-batches
+        idx = loop.batch_indices(len(pool.pairs), cfg.batch_size, pool.order_seed(cfg.seed), step - pool.start,
+                                 run.accelerator.process_index, run.accelerator.num_processes)[:run.per_process]
+        # ---- update: one forward over chosen and rejected per micro-batch, accumulated into one optimizer step
+        saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
+        with loop.naming_checkpoint(run.ckpt):
+            m = loop.optimizer_step(run.accelerator, run.model, run.optimizer, run.scheduler,
+                                    micro_groups(cfg, pool, idx, run.budget),
+                                    lambda mi: micro_batch_loss(cfg, run.model, run.ref.live, pool, mi,
+                                                                run.tokenizer.pad_token_id, len(idx)),
+                                    cfg.max_grad_norm, done)
+            if saving or (cfg.eval_every and done % cfg.eval_every == 0):
+                loop.check_weights(done, run.model)
+        # ---- log
+        if done % cfg.log_every == 0 or done == cfg.max_steps:
+            run.metrics.log(done, {"loss": m["loss"], **m})  # the loss first on the console line
+        # ---- eval
+        if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps):
+            evaluate(done, run)
+        # ---- checkpoint (with an online pool, so that a resume trains on the same pairs)
+        if saving:
+            run.ckpt.save(done, run.model, run.optimizer, run.scheduler, {"step": done},
+                          {"online_pool": asdict(pool)} if pool.gen > 0 else None)
+    return finish(run)
+
+
+# ----------------------------------------------------------------------------- setup and the end of a run
+@dataclass
+class DPORun:
+    """What a run holds between steps (`setup`)."""
+
+    res: Resolved
+    cfg: DPOConfig
+    accelerator: Any
+    say: Any  # prints on the main process
+    run_dir: Path
+    main: bool
+    sft_dir: Path
+    rm_dir: Path | None  # the proxy reward model (and online_labeler=rm's labeller)
+    data: PairData
+    tokenizer: Any
+    model: Any  # as accelerate prepared it
+    policy: Any  # the model inside the DDP / FSDP wrapper: generation, saving
+    ref: Reference
+    budget: int  # padded tokens per micro-batch (memory)
+    per_process: int  # pairs per process of a batch
+    baseline: list[str]  # the SFT model's completions of the gold rows (main process)
+    proxy: Any  # the proxy reward model's scorer (main process), or None
+    optimizer: Any
+    scheduler: Any
+    ckpt: loop.Checkpointer
+    metrics: loop.MetricsLog
+    pool: Pool  # the pairs of the first step: the offline pairs or a resumed online pool
+    start: int  # the first step (resume)
+
+
+def setup(res: Resolved, cfg: DPOConfig, ensure) -> DPORun:
+    """The pairs (a bad row stops the run before the run directory changes), the proxy reward model, the SFT model
+    as reference (precomputed log-probs, a live copy, or none) and baseline completions, then, unchanged, as the
+    policy; optimizer, resumed state and pool; the step-0 evaluation."""
+    data, sft_dir, tokenizer = load_pairs(res, ensure, cfg)
+    rm_dir = resolve_proxy_rm(res, ensure, cfg.proxy_rm, cfg.online and cfg.online_labeler == "rm")
+    accelerator, say = loop.start_run(res, cfg.seed, cfg.resume)
+    main, dev, pad_id = accelerator.is_main_process, accelerator.device, tokenizer.pad_token_id
+    micro, per_process = cfg.micro_batch_size or cfg.batch_size, max(1, cfg.batch_size // accelerator.num_processes)
+
+    # The SFT model: the reference (and the baseline completions), then, unchanged, the policy.
+    model = models.maybe_lora(res, models.load_model(sft_dir, res.model.dtype, device=dev), say)  # LoRA: adapters 0
+    budget = models.token_budget(res.run.micro_batch_tokens, model)  # padded tokens per micro-batch (memory)
+    ref = Reference(res, sft_dir, dev)
+    if cfg.loss_type in REFERENCE_FREE:  # SimPO, ORPO: no reference log-probs at all (the KL eval loads the SFT model)
+        ref_train = None
+    elif cfg.reference == "precomputed":
+        ref_train, ref.heldout = precompute_reference(cfg, model, data, pad_id, budget, say)
+    else:
+        ref_train, ref.live = None, models.load_reference(res, model, sft_dir, dev)
+    baseline = evaluation.complete(model, tokenizer, [r["prompt"] for r in data.gold_rows],
+                                   max_new_tokens=cfg.max_new_tokens) if (data.gold_rows and main) else []
+    proxy = scoring.RewardModelScorer(rm_dir, device=dev) if (rm_dir is not None and main) else None
+    if rm_dir is not None:
+        say(f"[dpo] proxy reward model: {rm_dir}")
+    optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
+    scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
+    model, optimizer = accelerator.prepare(model, optimizer)
+    ckpt = loop.Checkpointer(res.stage_dir(), cfg.keep_checkpoints, accelerator)
+    metrics = loop.open_metrics(res, cfg.max_steps, main, "[dpo] ")
+    state = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="dpo")
+    start, saved = state["step"], state["extra"].get("online_pool")  # an online pool (the offline one: rebuilt)
+    pool = Pool(**{**saved, "pairs": [TokenizedPair(**p) for p in saved["pairs"]]}) if saved else \
+        Pool(data.train, ref_train, labels=data.train_labels)
+    policy = accelerator.unwrap_model(model)  # the model inside the DDP / FSDP wrapper: generation, saving
+    run = DPORun(res, cfg, accelerator, say, res.stage_dir(), main, sft_dir, rm_dir, data, tokenizer, model, policy,
+                 ref, budget, per_process, baseline, proxy, optimizer, scheduler, ckpt, metrics, pool, start)
+    if start == 0 and cfg.eval_every:
+        evaluate(0, run)
+    what = "rows (each with its KL partner)" if cfg.loss_type == "kto" else "pairs"
+    say(f"[dpo] {len(data.train)} training {what} from {data.source}, batch {cfg.batch_size} (micro {micro} pairs, "
+        f"<= {budget} tokens), "
+        f"{cfg.max_steps} steps, {cfg.loss_type} loss, beta {cfg.beta}, lr {cfg.lr}, "
+        + ("no reference (a reference-free loss)" if cfg.loss_type in REFERENCE_FREE else f"reference {cfg.reference}")
+        + (f", online every {cfg.online_every} steps (labeler {cfg.online_labeler})" if cfg.online else ""))
+    return run
+
+
+def online_labeler(run: DPORun):
+    """Online DPO's labeller: the gold preference, or the reward model (the proxy's scorer when it is loaded)."""
+    if run.cfg.online_labeler == "gold":
+        return preferences.gold_labeler(run.res.task.name)
+    return preferences.scorer_labeler(run.proxy if run.proxy is not None else scoring.RewardModelScorer(run.rm_dir))
+
+
+def finish(run: DPORun) -> Path:
+    """final/ (every process gathers a sharded model; the main process saves), the over-optimisation plot, the
+    comparison with the SFT model and eval.json; returns final/."""
+    cfg, res, run_dir, policy = run.cfg, run.res, run.run_dir, run.policy
+    final = run_dir / "final"
+    whole = loop.full_state_dict(run.accelerator, run.model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
+    if run.main:
+        models.save_model(policy, run.tokenizer, final, state_dict=whole)
+        run.say(f"[dpo] saved {final}")
+        report: dict[str, Any] = {"model": str(final), "reference": str(run.sft_dir)}
+        path = run.metrics.path
+        note = evaluation.plot_gold_vs_proxy(list(loop.iter_jsonl(path)) if path.is_file() else [],
+                                             run_dir / "overoptimization.png", title=f"{res.recipe} DPO")
+        run.say(f"[dpo] over-optimisation plot: {note}")
+        if cfg.final_eval_rows and run.baseline:
+            report.update(evaluation.compare_with_sft(
+                "dpo", res.task.name, policy, run.ref.model_for(policy), run.tokenizer,
+                run.data.gold_rows[: cfg.final_eval_rows], run.baseline, max_new_tokens=cfg.max_new_tokens,
+                proxy=run.proxy, seed=loop.stream_seed(cfg.seed, "eval/sample"), say=run.say))
+        loop.write_json(run_dir / "eval.json", report)
+        run.metrics.close(report)
+    run.metrics.close()
+    run.accelerator.wait_for_everyone()
+    return final
+
+
 # ----------------------------------------------------------------------------- the loss of pairs
 REFERENCE_FREE = ("simpo", "orpo")
 
@@ -163,14 +336,11 @@ def pair_loss(cfg: DPOConfig, policy_logps: torch.Tensor, policy_tokens: torch.T
               ref: dict[str, torch.Tensor] | None, labels: torch.Tensor | None = None
               ) -> tuple[torch.Tensor, dict[str, float]]:
     """The preference loss of one micro-batch: policy (2B,) sums + token counts, reference {chosen, rejected,
-    *_tokens} (B,) (None for the reference-free losses). KTO: "chosen" is each row's completion, "rejected" its KL
-    partner, and `labels` (B,) bool says which rows are desirable."""
+    *_tokens} (B,) (None for the reference-free losses). KTO (`labels`: (B,) bool, desirable rows): `kto_rows_loss`."""
+    if cfg.loss_type == "kto":  # detail 12
+        return kto_rows_loss(cfg, policy_logps, ref, labels)
     B = policy_logps.shape[0] // 2
     pc, pr = policy_logps[:B], policy_logps[B:]  # (B,), (B,)
-    if cfg.loss_type == "kto":  # detail 12
-        rc, rr = ref["chosen"].to(pc.device), ref["rejected"].to(pc.device)  # (B,), (B,)
-        return kto_loss(pc, rc, labels.to(pc.device), pr, rr, beta=cfg.beta, desirable_weight=cfg.desirable_weight,
-                        undesirable_weight=cfg.undesirable_weight)
     if cfg.loss_type == "simpo":  # detail 10
         loss, metrics = simpo_loss(pc, pr, policy_tokens[:B], policy_tokens[B:], beta=cfg.beta, gamma=cfg.simpo_gamma)
     elif cfg.loss_type == "orpo":  # detail 11
@@ -187,6 +357,19 @@ def pair_loss(cfg: DPOConfig, policy_logps: torch.Tensor, policy_tokens: torch.T
         loss = loss + cfg.chosen_nll_weight * nll
         metrics["nll/chosen"] = float(nll.detach())
     return loss, metrics
+
+
+def kto_rows_loss(cfg: DPOConfig, policy_logps: torch.Tensor, ref: dict[str, torch.Tensor],
+                  desirable: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+    """Detail 12 on one micro-batch of B rows. A KTO row travels as a pair, (its completion, its KL partner), so
+    that prefix sharing and the precomputed reference apply: the pair's sides hold the completion (the first B
+    policy sums, ref["chosen"]) and the KL partner (the last B, ref["rejected"]). `desirable`: (B,) bool labels."""
+    B = policy_logps.shape[0] // 2
+    completion, kl_partner = policy_logps[:B], policy_logps[B:]  # (B,), (B,)
+    dev = completion.device
+    ref_completion, ref_kl_partner = ref["chosen"].to(dev), ref["rejected"].to(dev)  # (B,), (B,)
+    return kto_loss(completion, ref_completion, desirable.to(dev), kl_partner, ref_kl_partner, beta=cfg.beta,
+                    desirable_weight=cfg.desirable_weight, undesirable_weight=cfg.undesirable_weight)
 
 
 @dataclass
@@ -317,12 +500,14 @@ def refresh_pool(step: int, cfg: DPOConfig, policy, tokenizer, max_length: int, 
     from posttrain.rollout.records import save_step_rollouts
 
     gen = step // cfg.online_every
-    idx = random.Random(loop.stream_seed(cfg.seed, "dpo/online-prompts", gen)).sample(range(len(rows)), min(cfg.online_prompts, len(rows)))
+    idx = random.Random(loop.stream_seed(cfg.seed, "dpo/online-prompts", gen)).sample(
+        range(len(rows)), min(cfg.online_prompts, len(rows)))
     samples = [] if save_to is not None and cfg.save_rollouts_every and step % cfg.save_rollouts_every == 0 else None
     new_rows, st = preferences.sample_pairs(
         policy, tokenizer, [rows[i] for i in idx], labeler, prompt_keys=idx, samples_per_prompt=cfg.online_samples,
         pairs_per_prompt=cfg.online_pairs_per_prompt, temperature=cfg.online_temperature,
-        max_new_tokens=cfg.max_new_tokens, seed=loop.stream_seed(cfg.seed, "dpo/online-sample", gen), strategy=f"online-{cfg.online_labeler}",
+        max_new_tokens=cfg.max_new_tokens, seed=loop.stream_seed(cfg.seed, "dpo/online-sample", gen),
+        strategy=f"online-{cfg.online_labeler}",
         rollouts_out=samples)
     if samples:  # rollout inspection: every sample with its label and its role in the pairs
         metrics.log_table("rollouts", save_step_rollouts(samples, save_to, step), step)
@@ -346,139 +531,24 @@ def micro_groups(cfg: DPOConfig, pool: Pool, idx: list[int], budget: int) -> lis
     return [[idx[j] for j in g] for g in groups]
 
 
-def evaluate(step: int, cfg: DPOConfig, task_name: str, model, policy, tokenizer, data: PairData, ref: Reference,
-             baseline: list[str], proxy, budget: int, metrics: loop.MetricsLog, say) -> None:
-    """Held-out pair metrics (every process); with the SFT `baseline` (main process), `evaluation.policy_eval`."""
+def evaluate(step: int, run: DPORun) -> None:
+    """Held-out pair metrics (every process); with the SFT baseline (main process), `evaluation.policy_eval`."""
+    cfg, model, policy, data, ref = run.cfg, run.model, run.policy, run.data, run.ref
     heldout, sums = Pool(data.heldout, ref.heldout, labels=data.heldout_labels), {}
     if heldout.pairs:
         model.eval()
     with torch.no_grad():
-        for idx in micro_groups(cfg, heldout, list(range(len(heldout.pairs))), budget):
-            loss, m = micro_batch_loss(cfg, model, ref.live, heldout, idx, tokenizer.pad_token_id, len(idx))
+        for idx in micro_groups(cfg, heldout, list(range(len(heldout.pairs))), run.budget):
+            loss, m = micro_batch_loss(cfg, model, ref.live, heldout, idx, run.tokenizer.pad_token_id, len(idx))
             for k, v in {**m, "loss": float(loss)}.items():
                 sums[k] = sums.get(k, 0.0) + v * len(idx)
     m = {f"eval/{k}": v / len(heldout.pairs) for k, v in sums.items()}
-    if baseline:
-        m.update(evaluation.policy_eval(task_name, policy, ref.model_for(policy), tokenizer,
-                                        data.gold_rows[: cfg.eval_rows], baseline, max_new_tokens=cfg.max_new_tokens,
-                                        proxy=proxy, seed=loop.stream_seed(cfg.seed, "eval/sample")))
-    metrics.log(step, m, console=False)
+    if run.baseline:
+        m.update(evaluation.policy_eval(run.res.task.name, policy, ref.model_for(policy), run.tokenizer,
+                                        data.gold_rows[: cfg.eval_rows], run.baseline,
+                                        max_new_tokens=cfg.max_new_tokens, proxy=run.proxy,
+                                        seed=loop.stream_seed(cfg.seed, "eval/sample")))
+    run.metrics.log(step, m, console=False)
     shown = {k: m[k] for k in ("eval/rewards/accuracy", "gold/win_rate", "gold/reward", "proxy/reward", "kl") if k in m}
-    say(f"[dpo] step {step} eval: " + ", ".join(f"{k} {v:.3f}" for k, v in shown.items()))
+    run.say(f"[dpo] step {step} eval: " + ", ".join(f"{k} {v:.3f}" for k, v in shown.items()))
     model.train()
-
-
-def check_config(cfg: DPOConfig) -> None:
-    """Inconsistent settings are a ConfigError before anything runs."""
-    if cfg.online and cfg.online_every < 1:
-        raise ConfigError(f"dpo.online_every must be >= 1, got {cfg.online_every}")
-    if cfg.save_rollouts_every and (not cfg.online or cfg.save_rollouts_every % cfg.online_every):
-        raise ConfigError(f"dpo.save_rollouts_every={cfg.save_rollouts_every} saves the samples of online DPO's "
-                          f"regenerations: it needs online=true and a multiple of online_every={cfg.online_every}")
-    if cfg.label_smoothing and cfg.loss_type != "sigmoid":
-        raise ConfigError(f"dpo.label_smoothing applies to loss_type=sigmoid only (got loss_type={cfg.loss_type})")
-    if not 0.0 <= cfg.label_smoothing <= 0.5 or cfg.beta <= 0:
-        raise ConfigError("dpo.beta must be > 0 and dpo.label_smoothing in [0, 0.5]")
-    if cfg.simpo_gamma < 0:
-        raise ConfigError(f"dpo.simpo_gamma must be >= 0, got {cfg.simpo_gamma}")
-    if cfg.loss_type == "kto" and (cfg.online or cfg.chosen_nll_weight):
-        raise ConfigError("dpo.loss_type=kto trains on fixed labelled completions: online=true and chosen_nll_weight "
-                          "(RPO) are not supported with it")
-    if cfg.desirable_weight < 0 or cfg.undesirable_weight < 0:
-        raise ConfigError(f"dpo.desirable_weight and dpo.undesirable_weight must be >= 0, got {cfg.desirable_weight}, "
-                          f"{cfg.undesirable_weight}")
-
-
-# ----------------------------------------------------------------------------- train
-def train(res: Resolved, ensure) -> Path:
-    """Train the SFT model with DPO on preference pairs; returns the final model directory."""
-    cfg: DPOConfig = res.stage_cfg
-    check_config(cfg)
-    run_dir = res.stage_dir()
-    data, sft_dir, tokenizer = load_pairs(res, ensure, cfg)  # a bad row stops the run before the run dir changes
-    rm_dir = resolve_proxy_rm(res, ensure, cfg.proxy_rm, cfg.online and cfg.online_labeler == "rm")
-    accelerator, say = loop.start_run(res, cfg.seed, cfg.resume)
-    main, dev, pad_id = accelerator.is_main_process, accelerator.device, tokenizer.pad_token_id
-    micro, per_process = cfg.micro_batch_size or cfg.batch_size, max(1, cfg.batch_size // accelerator.num_processes)
-
-    # The SFT model: the reference (and the baseline completions), then, unchanged, the policy.
-    model = models.maybe_lora(res, models.load_model(sft_dir, res.model.dtype, device=dev), say)  # LoRA: adapters 0
-    budget = models.token_budget(res.run.micro_batch_tokens, model)  # padded tokens per micro-batch (memory)
-    ref = Reference(res, sft_dir, dev)
-    if cfg.loss_type in REFERENCE_FREE:  # SimPO, ORPO: no reference log-probs at all (the KL eval loads the SFT model)
-        ref_train = None
-    elif cfg.reference == "precomputed":
-        ref_train, ref.heldout = precompute_reference(cfg, model, data, pad_id, budget, say)
-    else:
-        ref_train, ref.live = None, models.load_reference(res, model, sft_dir, dev)
-    baseline = evaluation.complete(model, tokenizer, [r["prompt"] for r in data.gold_rows],
-                                   max_new_tokens=cfg.max_new_tokens) if (data.gold_rows and main) else []
-    proxy = scoring.RewardModelScorer(rm_dir, device=dev) if (rm_dir is not None and main) else None
-    if rm_dir is not None:
-        say(f"[dpo] proxy reward model: {rm_dir}")
-    optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
-    scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
-    model, optimizer = accelerator.prepare(model, optimizer)
-    ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
-    metrics = loop.open_metrics(res, cfg.max_steps, main, "[dpo] ")
-    state = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="dpo")
-    start, saved = state["step"], state["extra"].get("online_pool")  # an online pool (the offline one: rebuilt)
-    pool = Pool(**{**saved, "pairs": [TokenizedPair(**p) for p in saved["pairs"]]}) if saved else \
-        Pool(data.train, ref_train, labels=data.train_labels)
-    policy = accelerator.unwrap_model(model)  # the model inside the DDP / FSDP wrapper: generation, saving
-    if start == 0 and cfg.eval_every:
-        evaluate(0, cfg, res.task.name, model, policy, tokenizer, data, ref, baseline, proxy, budget, metrics, say)
-    what = "rows (each with its KL partner)" if cfg.loss_type == "kto" else "pairs"
-    say(f"[dpo] {len(data.train)} training {what} from {data.source}, batch {cfg.batch_size} (micro {micro} pairs, "
-        f"<= {budget} tokens), "
-        f"{cfg.max_steps} steps, {cfg.loss_type} loss, beta {cfg.beta}, lr {cfg.lr}, "
-        + ("no reference (a reference-free loss)" if cfg.loss_type in REFERENCE_FREE else f"reference {cfg.reference}")
-        + (f", online every {cfg.online_every} steps (labeler {cfg.online_labeler})" if cfg.online else ""))
-    for step in range(start, cfg.max_steps):
-        done = step + 1
-        # ---- online pairs (detail 8): every online_every steps, fresh pairs from the policy replace the pool
-        if cfg.online and step > 0 and step % cfg.online_every == 0 and pool.start != step:
-            labeler = (preferences.gold_labeler(res.task.name) if cfg.online_labeler == "gold" else
-                       preferences.scorer_labeler(proxy if proxy is not None else scoring.RewardModelScorer(rm_dir)))
-            pool = refresh_pool(step, cfg, policy, tokenizer, res.model.max_length, data.online_rows, labeler, ref,
-                                budget, metrics, say, run_dir if main else None)
-        # ---- batch: this process's share of the step's pairs (indices into the pool), in micro-batches
-        idx = loop.batch_indices(len(pool.pairs), cfg.batch_size, pool.order_seed(cfg.seed), step - pool.start,
-                                 accelerator.process_index, accelerator.num_processes)[:per_process]
-        # ---- update: one forward over chosen and rejected per micro-batch, accumulated into one optimizer step
-        saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
-        with loop.naming_checkpoint(ckpt):
-            m = loop.optimizer_step(accelerator, model, optimizer, scheduler, micro_groups(cfg, pool, idx, budget),
-                                    lambda mi: micro_batch_loss(cfg, model, ref.live, pool, mi, pad_id, len(idx)),
-                                    cfg.max_grad_norm, done)
-            if saving or (cfg.eval_every and done % cfg.eval_every == 0):
-                loop.check_weights(done, model)
-        # ---- log
-        if done % cfg.log_every == 0 or done == cfg.max_steps:
-            metrics.log(done, {"loss": m["loss"], **m})  # the loss first on the console line
-        # ---- eval
-        if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps):
-            evaluate(done, cfg, res.task.name, model, policy, tokenizer, data, ref, baseline, proxy, budget, metrics, say)
-        # ---- checkpoint (with an online pool, so that a resume trains on the same pairs)
-        if saving:
-            ckpt.save(done, model, optimizer, scheduler, {"step": done},
-                      {"online_pool": asdict(pool)} if pool.gen > 0 else None)
-
-    final = run_dir / "final"
-    whole = loop.full_state_dict(accelerator, model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
-    if main:
-        models.save_model(policy, tokenizer, final, state_dict=whole)
-        say(f"[dpo] saved {final}")
-        report: dict[str, Any] = {"model": str(final), "reference": str(sft_dir)}
-        note = evaluation.plot_gold_vs_proxy(list(loop.iter_jsonl(metrics.path)) if metrics.path.is_file() else [],
-                                             run_dir / "overoptimization.png", title=f"{res.recipe} DPO")
-        say(f"[dpo] over-optimisation plot: {note}")
-        if cfg.final_eval_rows and baseline:
-            report.update(evaluation.compare_with_sft(
-                "dpo", res.task.name, policy, ref.model_for(policy), tokenizer, data.gold_rows[: cfg.final_eval_rows],
-                baseline, max_new_tokens=cfg.max_new_tokens, proxy=proxy, seed=loop.stream_seed(cfg.seed, "eval/sample"), say=say))
-        loop.write_json(run_dir / "eval.json", report)
-        metrics.close(report)
-    metrics.close()
-    accelerator.wait_for_everyone()
-    return final

@@ -29,7 +29,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 
@@ -83,52 +83,16 @@ class RMConfig:
     """Continue from the newest checkpoint in the run directory."""
 
 
-@torch.no_grad()
-def heldout_metrics(model, pairs: list[TokenizedPair], pad_id: int, micro: int, max_tokens: int = 0) -> dict[str, float]:
-    """Bradley-Terry loss, pair accuracy and margin over held-out pairs."""
-    if not pairs:
-        return {}
-    model.eval()
-    sums: dict[str, float] = {}
-    for chunk in ([pairs[i] for i in g] for g in pair_groups(pairs, micro, max_tokens)):
-        r = pair_rewards(model, chunk, pad_id)
-        loss, m = bradley_terry_loss(r[: len(chunk)], r[len(chunk):])
-        m["loss"] = float(loss)
-        for k, v in m.items():
-            sums[k] = sums.get(k, 0.0) + v * len(chunk)
-    model.train()
-    return {f"eval/{k}": v / len(pairs) for k, v in sums.items()}
-
-
+# ----------------------------------------------------------------------------- train
 def train(res: Resolved, ensure) -> Path:
     """Train a reward model on preference pairs; returns the final HF directory."""
-    from posttrain import preferences
-    from posttrain.models import load_reward_init, load_tokenizer, maybe_lora, save_model, token_budget
+    from posttrain.models import load_reward_init, maybe_lora, save_model, token_budget
 
     cfg: RMConfig = res.stage_cfg
     run_dir = res.stage_dir()
     # Data first: a bad row stops the run before the run dir changes.
-    train_rows, eval_rows, source, eval_source = preferences.training_pairs(ensure, cfg.train_file, cfg.eval_file,
-                                                                            seed=cfg.seed,
-                                                                            columns=res.task.columns.mapping())
-    if cfg.on_bad_rows == "error":  # fail fast on what needs no tokenizer, before SFT may have to run
-        preferences.check_pairs(train_rows, source, "error")
-        preferences.check_pairs(eval_rows[: cfg.eval_pairs], eval_source, "error")
-    sft_dir = ensure("sft")
-    tokenizer = load_tokenizer(sft_dir, res.model)
+    sft_dir, tokenizer, train_pairs, eval_pairs, source = load_pairs(res, cfg, ensure)
     pad_id = tokenizer.pad_token_id
-    append_eos = rm_appends_eos(tokenizer)
-    _, train_pairs, bad = preferences.check_pairs(train_rows, source, cfg.on_bad_rows, tokenizer,
-                                                  res.model.max_length, append_eos=append_eos)
-    if bad.count:
-        print(f"[rm] {bad.summary()}")
-    _, eval_pairs, bad = preferences.check_pairs(eval_rows[: cfg.eval_pairs], eval_source, cfg.on_bad_rows,
-                                                 tokenizer, res.model.max_length, append_eos=append_eos)
-    if bad.count:
-        print(f"[rm] held-out pairs: {bad.summary()}")
-    if len(train_pairs) < cfg.batch_size:
-        raise loop.TrainingError(f"only {len(train_pairs)} usable preference pairs in {source}, fewer than "
-                                 f"batch_size={cfg.batch_size}")
 
     accelerator, say = loop.start_run(res, cfg.seed, cfg.resume)
     main = accelerator.is_main_process
@@ -191,3 +155,51 @@ def train(res: Resolved, ensure) -> Path:
     metrics.close()
     accelerator.wait_for_everyone()
     return final
+
+
+# ----------------------------------------------------------------------------- data and the held-out metrics
+def load_pairs(res: Resolved, cfg: RMConfig,
+               ensure) -> tuple[Path, Any, list[TokenizedPair], list[TokenizedPair], str]:
+    """(SFT model dir, tokenizer, training pairs, held-out pairs, their source), checked: on_bad_rows=error stops
+    on what needs no tokenizer before SFT may have to run."""
+    from posttrain import preferences
+    from posttrain.models import load_tokenizer
+
+    train_rows, eval_rows, source, eval_source = preferences.training_pairs(ensure, cfg.train_file, cfg.eval_file,
+                                                                            seed=cfg.seed,
+                                                                            columns=res.task.columns.mapping())
+    if cfg.on_bad_rows == "error":  # fail fast on what needs no tokenizer, before SFT may have to run
+        preferences.check_pairs(train_rows, source, "error")
+        preferences.check_pairs(eval_rows[: cfg.eval_pairs], eval_source, "error")
+    sft_dir = ensure("sft")
+    tokenizer = load_tokenizer(sft_dir, res.model)
+    append_eos = rm_appends_eos(tokenizer)
+    _, train_pairs, bad = preferences.check_pairs(train_rows, source, cfg.on_bad_rows, tokenizer,
+                                                  res.model.max_length, append_eos=append_eos)
+    if bad.count:
+        print(f"[rm] {bad.summary()}")
+    _, eval_pairs, bad = preferences.check_pairs(eval_rows[: cfg.eval_pairs], eval_source, cfg.on_bad_rows,
+                                                 tokenizer, res.model.max_length, append_eos=append_eos)
+    if bad.count:
+        print(f"[rm] held-out pairs: {bad.summary()}")
+    if len(train_pairs) < cfg.batch_size:
+        raise loop.TrainingError(f"only {len(train_pairs)} usable preference pairs in {source}, fewer than "
+                                 f"batch_size={cfg.batch_size}")
+    return sft_dir, tokenizer, train_pairs, eval_pairs, source
+
+
+@torch.no_grad()
+def heldout_metrics(model, pairs: list[TokenizedPair], pad_id: int, micro: int, max_tokens: int = 0) -> dict[str, float]:
+    """Bradley-Terry loss, pair accuracy and margin over held-out pairs."""
+    if not pairs:
+        return {}
+    model.eval()
+    sums: dict[str, float] = {}
+    for chunk in ([pairs[i] for i in g] for g in pair_groups(pairs, micro, max_tokens)):
+        r = pair_rewards(model, chunk, pad_id)
+        loss, m = bradley_terry_loss(r[: len(chunk)], r[len(chunk):])
+        m["loss"] = float(loss)
+        for k, v in m.items():
+            sums[k] = sums.get(k, 0.0) + v * len(chunk)
+    model.train()
+    return {f"eval/{k}": v / len(pairs) for k, v in sums.items()}

@@ -33,14 +33,14 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 
 from posttrain import loop
 from posttrain.chat import prompt_text
 from posttrain.config import Resolved
-from posttrain.data import collate_completions, to_device, tokenize_completions
+from posttrain.data import collate_completions, to_device, token_groups, tokenize_completions
 from posttrain.logprobs import nll_sum, token_weights
 
 
@@ -89,35 +89,85 @@ class SFTConfig:
     """Continue from the newest checkpoint in the run directory."""
 
 
-def micro_groups(pairs, micro_batch_size: int, max_tokens: int) -> list[list]:
-    """`data.tokenize_completions` items in micro-batches of at most `micro_batch_size` rows and `max_tokens`
-    padded tokens (`loop.token_groups`)."""
-    groups = loop.token_groups([(0, len(x[0]) + len(x[1])) for x in pairs], micro_batch_size, max_tokens)
-    return [[pairs[i] for i in g] for g in groups]
-
-
-@torch.no_grad()
-def eval_loss(model, pairs, pad_id: int, micro_batch_size: int, max_tokens: int = 0) -> float:
-    model.eval()
-    total, count = 0.0, 0
-    for chunk in micro_groups(pairs, micro_batch_size, max_tokens):
-        s, n = nll_sum(model, collate_completions(chunk, pad_id))
-        total += float(s)
-        count += float(n)
-    return total / max(1, count)
-
-
 # ----------------------------------------------------------------------------- train
 def train(res: Resolved, ensure) -> Path:
     """Fine-tune the base model (`ensure("base")`: a preset built from scratch or a local HF dir)
     on the task; returns the final model directory."""
-    from posttrain import evaluation, tasks
-    from posttrain.lean.support import sharded_problem
-    from posttrain.models import load_model, load_tokenizer, maybe_lora, save_model, token_budget
-
     cfg: SFTConfig = res.stage_cfg
+    run = setup(res, cfg, ensure)  # data first (a bad row stops before any model loads), model, optimizer, resume
+    accelerator = run.accelerator
+    tokens_seen, t_last = 0, time.time()
+    for step in range(run.start, cfg.max_steps):
+        # ---- batch: this process's share of the step's rows, in micro-batches
+        idx = loop.batch_indices(len(run.train_pairs), cfg.batch_size, cfg.seed, step,
+                                 accelerator.process_index, accelerator.num_processes)[:run.per_process]
+        micro_batches = [collate_completions(c, run.tokenizer.pad_token_id)
+                         for c in micro_groups([run.train_pairs[i] for i in idx], run.micro, run.budget)]
+        # counted on the host, before the batch moves to the model's device (no device-to-host sync)
+        n_tokens = sum(float(token_weights(mb, cfg.prompt_loss_weight).sum()) for mb in micro_batches)
+        tokens_seen += int(sum(int(mb["attention_mask"].sum()) for mb in micro_batches))
+        micro_batches = [to_device(mb, accelerator.device) for mb in micro_batches]
+        # ---- update: token mean over the GLOBAL batch: DDP averages gradients over processes, so each process
+        # divides its token-loss sum by the global token count times the number of processes.
+        scale = accelerator.num_processes / loop.global_sum(accelerator, n_tokens)
+
+        def loss_fn(mb):
+            s, _ = nll_sum(run.model, mb, cfg.prompt_loss_weight)
+            return s * scale, {}
+
+        m = loop.optimizer_step(accelerator, run.model, run.optimizer, run.scheduler, micro_batches, loss_fn,
+                                cfg.max_grad_norm, step)
+        done = step + 1
+        # ---- log
+        if done % cfg.log_every == 0 or done == cfg.max_steps:
+            dt = time.time() - t_last
+            run.metrics.log(done, {"loss": m["loss"], "lr": m["lr"], "grad_norm": m["grad_norm"],
+                                   "tokens_per_s": tokens_seen / max(dt, 1e-9)})
+            tokens_seen, t_last = 0, time.time()
+        # ---- eval: held-out loss, and samples
+        if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps):
+            evaluate(run, done)
+        # ---- checkpoint
+        if (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps:
+            run.ckpt.save(done, run.model, run.optimizer, run.scheduler, {"step": done})
+    return finish(run)
+
+
+# ----------------------------------------------------------------------------- setup, eval and the end of a run
+@dataclass
+class SFTRun:
+    """What a run holds between steps (`setup`)."""
+
+    res: Resolved
+    cfg: SFTConfig
+    accelerator: Any
+    say: Any  # prints on the main process
+    run_dir: Path
+    base_dir: Path
+    tokenizer: Any
+    model: Any  # as accelerate prepared it
+    train_pairs: list
+    eval_pairs: list
+    eval_rows: list[dict]
+    micro: int  # rows per micro-batch at most
+    budget: int  # padded tokens per micro-batch (memory)
+    per_process: int  # rows per process of a batch
+    optimizer: Any
+    scheduler: Any
+    ckpt: loop.Checkpointer
+    metrics: loop.MetricsLog
+    start: int  # the first step (resume)
+    sharded: bool  # the model is sharded over several processes (FSDP, ZeRO-3)
+
+
+def setup(res: Resolved, cfg: SFTConfig, ensure) -> SFTRun:
+    """Data first (a bad row must stop the run before any model loads or any run dir changes), then the base
+    model, the tokenized rows, the optimizer and the resumed state."""
+    from posttrain import tasks
+    from posttrain.lean.support import sharded_problem
+    from posttrain.models import load_model, load_tokenizer, maybe_lora, token_budget
+
     run_dir = res.stage_dir()
-    # Data first: a bad row must stop the run before any model loads or any run dir changes.
     train_rows = tasks.load_split(res.task, "train")
     eval_rows = tasks.load_split(res.task, "eval")
     base_dir = ensure("base")
@@ -153,53 +203,41 @@ def train(res: Resolved, ensure) -> Path:
     if sharded and cfg.eval_every and cfg.num_samples:
         say(f"[sft] no samples during training: the model is sharded over {accelerator.num_processes} processes; "
             f"the final evaluation runs on final/")
-    tokens_seen, t_last = 0, time.time()
-    for step in range(start, cfg.max_steps):
-        idx = loop.batch_indices(len(train_pairs), cfg.batch_size, cfg.seed, step,
-                                 accelerator.process_index, accelerator.num_processes)[:per_process]
-        batch_pairs = [train_pairs[i] for i in idx]
-        micro_batches = [collate_completions(c, tokenizer.pad_token_id) for c in micro_groups(batch_pairs, micro, budget)]
-        # counted on the host, before the batch moves to the model's device (no device-to-host sync)
-        n_tokens = sum(float(token_weights(mb, cfg.prompt_loss_weight).sum()) for mb in micro_batches)
-        tokens_seen += int(sum(int(mb["attention_mask"].sum()) for mb in micro_batches))
-        micro_batches = [to_device(mb, accelerator.device) for mb in micro_batches]
-        # Token mean over the GLOBAL batch: DDP averages gradients over processes, so each process
-        # divides its token-loss sum by the global token count times the number of processes.
-        scale = accelerator.num_processes / loop.global_sum(accelerator, n_tokens)
+    return SFTRun(res, cfg, accelerator, say, run_dir, base_dir, tokenizer, model, train_pairs, eval_pairs, eval_rows,
+                  micro, budget, per_process, optimizer, scheduler, ckpt, metrics, start, sharded)
 
-        def loss_fn(mb):
-            s, _ = nll_sum(model, mb, cfg.prompt_loss_weight)
-            return s * scale, {}
 
-        m = loop.optimizer_step(accelerator, model, optimizer, scheduler, micro_batches, loss_fn,
-                                cfg.max_grad_norm, step)
-        done = step + 1
-        if done % cfg.log_every == 0 or done == cfg.max_steps:
-            dt = time.time() - t_last
-            metrics.log(done, {"loss": m["loss"], "lr": m["lr"], "grad_norm": m["grad_norm"],
-                               "tokens_per_s": tokens_seen / max(dt, 1e-9)})
-            tokens_seen, t_last = 0, time.time()
-        if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps):
-            el = eval_loss(model, eval_pairs, tokenizer.pad_token_id, micro, budget)
-            metrics.log(done, {"eval_loss": el}, console=False)
-            say(f"[sft] step {done}: eval loss {el:.4f}")
-            if cfg.num_samples and accelerator.is_main_process and not sharded:
-                show = eval_rows[: cfg.num_samples]
-                outs = evaluation.complete(accelerator.unwrap_model(model), tokenizer, [r["prompt"] for r in show],
-                                           max_new_tokens=cfg.max_new_tokens)
-                for r, o in zip(show, outs):
-                    say(f"    prompt: ...{prompt_text(r['prompt'])[-60:]!r}\n    sample: {o!r}")
-        if (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps:
-            ckpt.save(done, model, optimizer, scheduler, {"step": done})
+def evaluate(run: SFTRun, done: int) -> None:
+    """The held-out loss (every process), logged at `done`; samples of the first prompts (main process)."""
+    from posttrain import evaluation
 
-    final = run_dir / "final"
+    cfg, accelerator = run.cfg, run.accelerator
+    el = eval_loss(run.model, run.eval_pairs, run.tokenizer.pad_token_id, run.micro, run.budget)
+    run.metrics.log(done, {"eval_loss": el}, console=False)
+    run.say(f"[sft] step {done}: eval loss {el:.4f}")
+    if cfg.num_samples and accelerator.is_main_process and not run.sharded:
+        show = run.eval_rows[: cfg.num_samples]
+        outs = evaluation.complete(accelerator.unwrap_model(run.model), run.tokenizer, [r["prompt"] for r in show],
+                                   max_new_tokens=cfg.max_new_tokens)
+        for r, o in zip(show, outs):
+            run.say(f"    prompt: ...{prompt_text(r['prompt'])[-60:]!r}\n    sample: {o!r}")
+
+
+def finish(run: SFTRun) -> Path:
+    """final/ (every process gathers a sharded model; the main process saves), then the task's gold metric of
+    the untrained and the trained model on held-out prompts (eval.json); returns final/."""
+    from posttrain import evaluation
+    from posttrain.models import load_model, save_model
+
+    cfg, res, accelerator, model, tokenizer = run.cfg, run.res, run.accelerator, run.model, run.tokenizer
+    final = run.run_dir / "final"
     whole = loop.full_state_dict(accelerator, model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
     if accelerator.is_main_process:
         save_model(accelerator.unwrap_model(model), tokenizer, final, state_dict=whole)
-        say(f"[sft] saved {final}")
+        run.say(f"[sft] saved {final}")
         if cfg.final_eval_rows:
-            rows = eval_rows[: cfg.final_eval_rows]
-            untrained = load_model(base_dir, res.model.dtype, device=accelerator.device)
+            rows = run.eval_rows[: cfg.final_eval_rows]
+            untrained = load_model(run.base_dir, res.model.dtype, device=accelerator.device)
             before = evaluation.evaluate_model(res.task.name, untrained, tokenizer, rows,
                                                max_new_tokens=cfg.max_new_tokens)
             # sharded: the whole weights are in final/ (the in-memory model holds this process's shard)
@@ -207,9 +245,28 @@ def train(res: Resolved, ensure) -> Path:
                 else accelerator.unwrap_model(model)
             after = evaluation.evaluate_model(res.task.name, trained, tokenizer, rows,
                                               max_new_tokens=cfg.max_new_tokens)
-            loop.write_json(run_dir / "eval.json", {"untrained": before, "sft": after})
-            say(evaluation.format_comparison({"untrained": before, "sft": after}, res.task.name))
-            metrics.close({"untrained": before, "sft": after})
-    metrics.close()
+            loop.write_json(run.run_dir / "eval.json", {"untrained": before, "sft": after})
+            run.say(evaluation.format_comparison({"untrained": before, "sft": after}, res.task.name))
+            run.metrics.close({"untrained": before, "sft": after})
+    run.metrics.close()
     accelerator.wait_for_everyone()
     return final
+
+
+# ----------------------------------------------------------------------------- micro-batches and the held-out loss
+def micro_groups(pairs, micro_batch_size: int, max_tokens: int) -> list[list]:
+    """`data.tokenize_completions` items in micro-batches of at most `micro_batch_size` rows and `max_tokens`
+    padded tokens (`data.token_groups`)."""
+    groups = token_groups([(0, len(x[0]) + len(x[1])) for x in pairs], micro_batch_size, max_tokens)
+    return [[pairs[i] for i in g] for g in groups]
+
+
+@torch.no_grad()
+def eval_loss(model, pairs, pad_id: int, micro_batch_size: int, max_tokens: int = 0) -> float:
+    model.eval()
+    total, count = 0.0, 0
+    for chunk in micro_groups(pairs, micro_batch_size, max_tokens):
+        s, n = nll_sum(model, collate_completions(chunk, pad_id))
+        total += float(s)
+        count += float(n)
+    return total / max(1, count)
