@@ -22,7 +22,7 @@ import dataclasses
 import logging
 import os
 import weakref
-from typing import Callable, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import torch
 
@@ -83,7 +83,16 @@ def context_length(model) -> int | None:
     return int(n) if n else None
 
 
-_lean_cache: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+class _LeanEntry(NamedTuple):
+    """A model's cached lean forward and what it was built from."""
+
+    signature: Any  # `weights_signature` of the model (tensor versions): a changed weight changes it
+    lean: Any  # the LeanLlama
+    layout: tuple  # (shape, dtype, device) of every parameter: equal layouts refresh in place
+    mode: tuple  # (weight dtype, compute dtype)
+
+
+_lean_cache: "weakref.WeakKeyDictionary[Any, _LeanEntry]" = weakref.WeakKeyDictionary()
 
 
 def select_backend(model, max_len: int = 0, backend: str = "auto", dtype: str | None = None):
@@ -106,18 +115,18 @@ def select_backend(model, max_len: int = 0, backend: str = "auto", dtype: str | 
         wdt, cdt, note = _lean_precision(inner, dtype)
         mode = (wdt, cdt)
         sig = weights_signature(inner)
-        hit = _lean_cache.get(inner)
-        if hit is None or hit[0] != sig or hit[3] != mode:
+        cached = _lean_cache.get(inner)
+        if cached is None or cached.signature != sig or cached.mode != mode:
             layout = tuple((p.shape, p.dtype, p.device) for p in inner.parameters())
-            lean = hit[1] if hit is not None else None
+            lean = cached.lean if cached is not None else None
             with torch.no_grad():
-                if lean is not None and hit[2] == layout and hit[3] == mode:
+                if lean is not None and cached.layout == layout and cached.mode == mode:
                     lean.load(inner)  # same parameter shapes, dtypes and devices: refresh in place
                 else:
                     lean = LeanLlama(inner, weight_dtype=wdt, compute_dtype=cdt)
-            hit = (sig, lean, layout, mode)
-            _lean_cache[inner] = hit
-        return hit[1], why + note
+            cached = _LeanEntry(sig, lean, layout, mode)
+            _lean_cache[inner] = cached
+        return cached.lean, why + note
     if backend == "lean":
         raise ValueError(f"rollout backend 'lean' cannot run this model: {why}; use backend='auto' or 'hf'")
     return HFForward(model), f"HF forward ({why}{compressed})"
@@ -443,7 +452,7 @@ def _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_ta
         if alive_n == 0 or t == steps - 1:
             break
         if not static and dead and len(dead) >= max(1, Bact // 8):
-            # Drop finished rows: the last live slots move into the holes (see backends.LeanLlama.select).
+            # Drop finished rows: the last live slots move into the holes (see lean.decode.LeanLlama.select).
             retire(sorted(dead))
             n_new = alive_n
             holes = [s for s in sorted(dead) if s < n_new]
