@@ -66,6 +66,7 @@ TASKS: dict[str, str] = {
     "tiny-code": "posttrain.tasks.code",
     "word-math": "posttrain.tasks.wordmath",
     "tiny-calc": "posttrain.tasks.calc",
+    "tiny-calc-direct": "posttrain.tasks.calc_direct",
 }
 
 
