@@ -20,7 +20,7 @@ from typing import Any, Literal
 
 import yaml
 
-from posttrain.errors import ConfigError  # noqa: F401  (raised here; importable from here as before)
+from posttrain.errors import ConfigError
 from posttrain import trackers
 from posttrain.runtime import dtype_problem
 

@@ -63,7 +63,7 @@ import datasets
 import torch
 
 from posttrain.chat import ROLES, encode_conversation, encode_prompts, is_conversation, messages_problem
-from posttrain.errors import DataError  # noqa: F401  (raised here; importable from here as before)
+from posttrain.errors import DataError
 
 Schema = Literal["sft", "preference", "verifiable", "prompt", "unpaired"]
 

@@ -39,7 +39,7 @@ import torch
 from posttrain.data import row_spans, to_device, token_groups
 from posttrain.lean import train as lean
 from posttrain.lean.support import lean_support
-from posttrain.models import accepts, hf_attention_mask, model_device, position_ids_from_mask, unwrap_model  # noqa: F401
+from posttrain.models import accepts, hf_attention_mask, model_device, position_ids_from_mask
 
 # ------------------------------------------------------------------ log-probs
 

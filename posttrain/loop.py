@@ -36,15 +36,14 @@ import os
 import random
 import shutil
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
 import numpy as np
 import torch
 
-from posttrain.data import token_groups  # noqa: F401  (micro-batches by tokens; importable from here)
-from posttrain.errors import ConfigError, TrainingError  # noqa: F401  (TrainingError: importable from here as before)
+from posttrain.errors import ConfigError, TrainingError
 from posttrain.runtime import (BF16_MIN_SPEEDUP, adopt_bf16_speedup, bf16_forced, bf16_measured, bf16_speedup,
                                has_accelerator_device, native_bf16, probe_decides_bf16, set_threads, tune_malloc)
 from posttrain.runtime import mixed_precision as resolve_mixed_precision
@@ -265,7 +264,7 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
         micro_batches = list(micro_batches) + [micro_batches[-1]] * (most - real)
     for i, mb in enumerate(micro_batches):
         last = i == len(micro_batches) - 1
-        ctx = accelerator.no_sync(model) if (not last and accelerator.num_processes > 1) else _null()
+        ctx = accelerator.no_sync(model) if (not last and accelerator.num_processes > 1) else nullcontext()
         with ctx:
             loss, metrics = loss_fn(mb)
             if i >= real:  # a copy that only keeps this process in step with the others
@@ -347,14 +346,6 @@ def naming_checkpoint(ckpt: "Checkpointer", context: str = ""):
         last = ckpt.latest()
         where = f"last good checkpoint: {last}" if last else "no checkpoint was written yet"
         raise TrainingError(f"{e} ({context + '; ' if context else ''}{where})") from None
-
-
-class _null:
-    def __enter__(self):
-        return None
-
-    def __exit__(self, *a):
-        return False
 
 
 # ----------------------------------------------------------------------------- data order
@@ -457,12 +448,9 @@ class MetricsLog:
             self.trackers = None
 
 
-_PROGRESS_QUIET = [False]  # set by start_run: run.quiet, or a process other than the main one
-
-
 def set_progress_quiet(quiet: bool) -> None:
     """Whether `Progress` lines print by default in this process (`start_run` sets it from run.quiet and the rank)."""
-    _PROGRESS_QUIET[0] = bool(quiet)
+    Progress.default_quiet = bool(quiet)
 
 
 class Progress:
@@ -471,9 +459,11 @@ class Progress:
     evaluation prints nothing), then one closing line if it printed any. `quiet`: print nothing (None: as the
     stage says, `set_progress_quiet`: silent with run.quiet=true and on every process but the main one)."""
 
+    default_quiet = False  # `set_progress_quiet`: run.quiet, or a process other than the main one
+
     def __init__(self, label: str, every_s: float = 15.0, quiet: bool | None = None,
                  clock: Callable[[], float] = time.time, out: Callable[[str], None] | None = None):
-        quiet = _PROGRESS_QUIET[0] if quiet is None else quiet
+        quiet = Progress.default_quiet if quiet is None else quiet
         self.label, self.every_s, self.quiet, self.clock = label, every_s, quiet, clock
         self.out = out or (lambda line: print(line, flush=True))
         self.t0 = self.last = clock()

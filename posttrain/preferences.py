@@ -56,7 +56,7 @@ import torch
 from posttrain import loop
 from posttrain.chat import encode_prompts, is_conversation, prompt_key, prompt_text
 from posttrain.logprobs import masked_sum, packed_logprobs, sequence_logprobs
-from posttrain.data import DataError, collate_completions, hub_rows, hub_source, normalized_row
+from posttrain.data import DataError, collate_completions, hub_rows, hub_source, normalized_row, token_groups
 
 PAIR_FIELDS = ("prompt", "chosen", "rejected")
 UNPAIRED_FIELDS = ("prompt", "completion", "label")  # TRL's unpaired preference format (KTO)
@@ -689,9 +689,9 @@ def pair_groups(pairs: Sequence[TokenizedPair], max_rows: int, max_tokens: int =
     `collate_pairs` lays them out: two rows per pair (prompt + the longer side), or one shared-prompt row
     (prompt + chosen + rejected)."""
     if share_prompt:
-        return loop.token_groups([(0, len(p.prompt) + len(p.chosen) + len(p.rejected)) for p in pairs], max_rows,
+        return token_groups([(0, len(p.prompt) + len(p.chosen) + len(p.rejected)) for p in pairs], max_rows,
                                  max_tokens)
-    return loop.token_groups([(0, len(p.prompt) + max(len(p.chosen), len(p.rejected))) for p in pairs], max_rows,
+    return token_groups([(0, len(p.prompt) + max(len(p.chosen), len(p.rejected))) for p in pairs], max_rows,
                              max_tokens, rows_per_item=2)
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import torch
 
-from ..lean.decode import LeanLlama  # noqa: F401  (the engine's lean backend, importable from here)
 from ..models import accepts, model_device
 
 

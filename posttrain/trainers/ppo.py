@@ -116,8 +116,9 @@ class PPOConfig:
     """GAE lambda."""
     clip_eps: float = 0.2
     """Policy ratio clipping range."""
-    policy_loss: Literal["clip", "gspo", "gspo_token", "cispo"] = "clip"
-    """clip (PPO's surrogate), cispo (CISPO), gspo_token (GSPO-token); gspo is GRPO's only (per-sequence advantages)."""
+    policy_loss: Literal["clip", "gspo_token", "cispo"] = "clip"
+    """clip (PPO's surrogate), cispo (CISPO), gspo_token (GSPO-token); sequence-level gspo is GRPO's only (it needs
+    one advantage per sequence, and GAE gives one per token)."""
     rollout_correction: Literal["none", "tis", "mask"] = "none"
     """Sampler-trainer correction of the policy loss: tis (weights min(w, cap)), mask (drop w outside [1/cap, cap])."""
     rollout_correction_level: Literal["token", "sequence"] = "token"
@@ -189,9 +190,6 @@ def check_config(cfg: PPOConfig) -> None:
                           f"got {cfg.temperature}")
     if cfg.clip_eps <= 0:
         raise ConfigError(f"ppo.clip_eps must be > 0, got {cfg.clip_eps}")
-    if cfg.policy_loss == "gspo":
-        raise ConfigError("ppo.policy_loss=gspo needs one advantage per sequence, and PPO's GAE gives one per token: "
-                          "use policy_loss=gspo_token (GSPO-token), or GRPO for sequence-level GSPO")
     if not cfg.rollout_correction_cap > 1:
         raise ConfigError(f"ppo.rollout_correction_cap must be > 1, got {cfg.rollout_correction_cap}")
     for name in ("value_clip", "reward_clip", "missing_eos_penalty", "entropy_coef", "kl_coef", "lr", "value_lr"):

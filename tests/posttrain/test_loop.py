@@ -371,7 +371,7 @@ def test_progress_follows_the_stage_quiet_setting(tmp_path, capsys):
     """run.quiet=true (and every process but the main one) silences the progress lines of long phases."""
     from posttrain import loop
 
-    before = loop._PROGRESS_QUIET[0]
+    before = loop.Progress.default_quiet
     try:
         for quiet, expect in ((True, []), (False, ["x: 5/10 (50%), 0s elapsed, eta 0s"])):
             loop.set_progress_quiet(quiet)
@@ -383,7 +383,7 @@ def test_progress_follows_the_stage_quiet_setting(tmp_path, capsys):
 
         res = resolve("tiny-summarize", "sft", SFTConfig, [f"run.output_dir={tmp_path}", "run.quiet=true"])
         loop.start_run(res, 0, False)
-        assert loop._PROGRESS_QUIET[0] is True
+        assert loop.Progress.default_quiet is True
     finally:
         loop.set_progress_quiet(before)
 

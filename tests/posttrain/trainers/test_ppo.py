@@ -68,7 +68,7 @@ def _metrics(out: Path) -> list[dict]:
     ("rollout_batch_size=128", "ppo.rollout_batch_size=128 is more than the 64 training prompts"),
     ("kl_estimator=k2", "'ppo.kl_estimator': 'k2' is not one of 'k1', 'k3'"),
     ("task.train_file=SHORT", "ppo.reward=gold needs the task's meta in every training row"),
-    ("policy_loss=gspo", "ppo.policy_loss=gspo needs one advantage per sequence"),
+    ("policy_loss=gspo", "'ppo.policy_loss': 'gspo' is not one of 'clip', 'gspo_token', 'cispo'"),
     ("rollout_correction_cap=0.5", "ppo.rollout_correction_cap must be > 1"),
 ])
 def test_config_errors_are_one_line_and_touch_nothing(world, tmp_path, capsys, bad, message):
