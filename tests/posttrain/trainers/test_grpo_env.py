@@ -15,25 +15,15 @@ ENVS = Path(__file__).resolve().parent.parent / "envs_for_tests.py"
 
 @pytest.fixture(scope="module")
 def chat_sft(tiny_lm, tmp_path_factory):
-    """A random tiny model with a chat tokenizer trained on tiny-calc text: the 'SFT model' GRPO starts from. Its
-    eos row of the output matrix points along the mean final hidden state of its prompts, so that some turns (not
-    all) end at eos within 12 tokens: the Turns reward then varies within a group."""
-    from posttrain.chat import encode_prompts
-    from posttrain.models import load_model, load_tokenizer, save_model
-    from posttrain.verifiers.envs.calc import CalcEnv
+    """A random tiny model with a chat tokenizer trained on tiny-calc text, its eos made likely enough that some
+    turns end early (envs_for_tests.eos_pulled_copy): the 'SFT model' GRPO starts from."""
+    import importlib.util
 
+    spec = importlib.util.spec_from_file_location("envs_for_tests", ENVS)
+    envs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(envs)
     src = tiny_lm("tiny-calc", vocab_size=320, max_length=256, split_digits=True, chat=True)
-    tok, model = load_tokenizer(src), load_model(src)
-    ids = encode_prompts(tok, [CalcEnv().reset(p) for p in CalcEnv.problems(8)])
-    with torch.no_grad():
-        h = torch.cat([model.model(input_ids=torch.tensor([x])).last_hidden_state[0] for x in ids]).mean(0)
-        model.lm_head.weight[tok.eos_token_id] = EOS_PULL * h / h.norm()
-    out = tmp_path_factory.mktemp("chat-sft") / "model"
-    save_model(model, tok, out)
-    return out
-
-
-EOS_PULL = 0.5
+    return envs.eos_pulled_copy(src, tmp_path_factory.mktemp("chat-sft") / "model")
 
 
 def _args(sft_model, out: Path, *extra: str) -> list[str]:
