@@ -56,6 +56,11 @@ Contract
   `torch.autograd.graph.increment_version`; do the same in a loop of your own with a fused optimizer). Not
   thread-safe: one `generate` at a time per model. `tune_malloc` raises glibc's malloc thresholds
   once per process (see there). Measured speed: `scripts/bench.py`.
+- Multi-turn. `posttrain.rollout.multiturn.generate_episodes(model, tokenizer, env, problems, ...)` samples
+  episodes of an environment with tools (posttrain.verifiers.envs) through the same forwards and sampler: one
+  Rollout per episode whose completion holds every turn's sampled tokens (mask 1) and the environment's tokens
+  (mask 0, exactly the chat template's suffix for its messages), each row's KV cache kept across turns, tool calls
+  running in threads while the other rows decode. Its contract is in that module's docstring.
 - Backends. `generate(..., backend=None)` uses the process default that `configure` sets (the CLI sets it
   from the recipe's `rollout:` section; "auto" otherwise). backend="vllm" (GPU, optional, import-guarded:
   importing posttrain never imports vllm) samples through `vllm_backend.VLLMEngine`, which returns the same
