@@ -119,7 +119,8 @@ class RunConfig:
     micro_batch_tokens: int = 0
     """Padded tokens per forward / backward in every stage, a bound on activation memory (each stage's
     micro_batch_size still caps the rows); 0: auto, the tokens whose activations take ~2 GiB for this model
-    (posttrain.models.token_budget: ~32k for the tiny preset, ~1.1k for a 135M model with a 49k vocabulary)."""
+    (posttrain.models.token_budget; its values for a tiny and a 135M model: RESULTS.md, "Figures once kept in
+    code comments")."""
 
 
 @dataclass

@@ -85,9 +85,10 @@ def cpu_model() -> str:
 
 def native_bf16() -> bool:
     """bf16 matmuls run faster than fp32 ones here: a CUDA GPU with bf16 support, or a CPU with AVX512-BF16 or
-    AMX-BF16 on which `bf16_speedup()` measures at least BF16_MIN_SPEEDUP (Zen 4: bf16 autocast 1.4-2.9x the
+    AMX-BF16 on which `bf16_speedup()` measures at least BF16_MIN_SPEEDUP (on Zen 4 bf16 autocast beats the
     fp32 matmul rate). The flags alone do not say it: an Intel Xeon (family 6 model 207, AVX512-BF16 listed,
-    AMX not exposed to the VM) ran bf16 matmuls at 0.5-0.98x fp32 (RESULTS.md, "bf16 on a CPU whose flags list AVX512-BF16 but whose bf16 matmuls are slow"); CPUs without
+    AMX not exposed to the VM) ran bf16 matmuls slower than fp32 (measured: RESULTS.md, "bf16 on a CPU whose
+    flags list AVX512-BF16 but whose bf16 matmuls are slow" and "Figures once kept in code comments"); CPUs without
     the flags emulate bf16 and are slower still (no probe is run there). `bf16_forced()` (POSTTRAIN_BF16, a
     resumed run's recorded decision) answers first."""
     forced = bf16_forced()
@@ -144,7 +145,8 @@ _bf16_speedups: dict[int, float] = {}
 
 def bf16_speedup() -> float:
     """fp32 time / bf16 time of CPU matmuls at a decode shape (16 x 576 by 576 x 1536) and a training shape
-    (256 x 576 by 576 x 1536), the smaller of the two (medians of 15 and 5 alternating calls, ~50 ms in all);
+    (256 x 576 by 576 x 1536), the smaller of the two (medians of 15 and 5 alternating calls: its cost,
+    RESULTS.md, "Figures once kept in code comments");
     measured once per process and torch thread count (what `native_bf16` and so `auto` settings decide by)."""
     threads = torch.get_num_threads()
     if threads not in _bf16_speedups:

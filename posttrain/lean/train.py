@@ -41,9 +41,9 @@ faster (figures in RESULTS.md):
   `support.train_autocast`), every projection and the attention run in bf16 as the HF forward's would; the
   residual stream, the norms and RoPE stay fp32, the head's matmul is bf16 with its softmax, log-probs and
   gradients fp32 (the chunked head casts explicitly, forward and backward). fp16 autocast falls back. On
-  SmolLM2 (Zen 4, AVX512-BF16, 2 threads) a GRPO-like forward + backward went 4.77 s (lean fp32) -> 2.88 s,
-  against 3.73 s for the HF forward under the same autocast (RESULTS.md, "Lean forwards").
-- Not kept: a vector_norm/hypot RMSNorm (as `LeanLlama`; ~1% faster, more rounding), explicit-matmul
+  SmolLM2 with native bf16 a GRPO-like forward + backward is faster than lean fp32 and than the HF forward
+  under the same autocast (measured: RESULTS.md, "Lean forwards" and "Figures once kept in code comments").
+- Not kept: a vector_norm/hypot RMSNorm (as `LeanLlama`; barely faster, more rounding), explicit-matmul
   attention (slower; its backward keeps the (B, H, T, T) probabilities), a flip-based rotate_half.
 
 Switch: `posttrain.lean.support.ENABLED = False`, or POSTTRAIN_LEAN_TRAIN=0 in the environment, makes

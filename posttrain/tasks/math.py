@@ -25,9 +25,9 @@ questions, 16 names, 10 item words.
 Worked solutions (the SFT targets) -- why they look like this
 --------------------------------------------------------------
 A ~1M-parameter Llama trained from scratch on a CPU learns arithmetic only when every
-generated token is easy to compute from a few tokens before it (issue 6 reports ~5% for such a
-model trained 150 s on plain two-digit addition with the answer written directly; this format
-reaches ~85% greedy on 2-3 step problems after 800 SFT steps, ~6 min on one thread). So a
+generated token is easy to compute from a few tokens before it (such a model trained on plain two-digit
+addition with the answer written directly stays near chance, while this format learns 2-3 step problems;
+measured: RESULTS.md, "Figures once kept in code comments"). So a
 worked solution is:
 
      47+38-19
