@@ -149,20 +149,27 @@ def loaded_file_modules() -> list[tuple[str, str]]:
     return sorted(_FILE_MODULES.items())
 
 
-def load_file(path: str, attr: str, **options: Any) -> Verifier:
-    """The verifier `attr` defined in the Python file `path`."""
+def import_spec_file(path: str, attr: str, what: str = "verifier", example: str = "my_verifier"):
+    """(module, its name in sys.modules) of the Python file of a `path.py:attr` spec of a `what` (a verifier, an
+    environment), imported once per process; one-line ValueErrors naming the file."""
     abspath = os.path.abspath(os.path.expanduser(path))
     if not os.path.isfile(abspath):
-        raise ValueError(f"verifier file not found: {path}")
+        raise ValueError(f"{what} file not found: {path}")
     if not attr:
-        raise ValueError(f"verifier spec {path}: missing ':name' (e.g. {path}:my_verifier)")
+        raise ValueError(f"{what} spec {path}: missing ':name' (e.g. {path}:{example})")
     modname = _module_name_for(abspath)
     module = sys.modules.get(modname)
     if module is None:
         try:
             module = _import_file_module(modname, abspath)
         except Exception as e:
-            raise ValueError(f"error importing verifier file {path}: {type(e).__name__}: {e}") from e
+            raise ValueError(f"error importing {what} file {path}: {type(e).__name__}: {e}") from e
+    return module, modname
+
+
+def load_file(path: str, attr: str, **options: Any) -> Verifier:
+    """The verifier `attr` defined in the Python file `path`."""
+    module, modname = import_spec_file(path, attr)
     if not hasattr(module, attr):
         defined = sorted(k for k, v in vars(module).items()
                          if not k.startswith("_") and (callable(v) or isinstance(v, Verifier))

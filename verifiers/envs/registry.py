@@ -15,12 +15,10 @@ import dataclasses
 import importlib
 import importlib.metadata
 import inspect
-import os
-import sys
 from typing import Any
 
 from posttrain.verifiers.envs.base import Environment, Limits
-from posttrain.verifiers.registry import _import_file_module, _module_name_for
+from posttrain.verifiers.registry import import_spec_file
 
 ENTRY_POINT_GROUP = "posttrain.envs"
 BUILTINS: dict[str, str] = {
@@ -58,18 +56,7 @@ def _instantiate(obj: Any, where: str, options: dict[str, Any]) -> Environment:
 
 
 def _load_file(path: str, attr: str) -> Any:
-    abspath = os.path.abspath(os.path.expanduser(path))
-    if not os.path.isfile(abspath):
-        raise ValueError(f"environment file not found: {path}")
-    if not attr:
-        raise ValueError(f"environment spec {path}: missing ':Name' (e.g. {path}:MyEnv)")
-    modname = _module_name_for(abspath)
-    module = sys.modules.get(modname)
-    if module is None:
-        try:
-            module = _import_file_module(modname, abspath)
-        except Exception as e:
-            raise ValueError(f"error importing environment file {path}: {type(e).__name__}: {e}") from e
+    module, modname = import_spec_file(path, attr, "environment", "MyEnv")
     if not hasattr(module, attr):
         defined = sorted(k for k, v in vars(module).items() if inspect.isclass(v) and issubclass(v, Environment)
                          and v.__module__ == modname)
