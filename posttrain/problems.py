@@ -190,10 +190,9 @@ def load_problems(res, cfg, stage: str, *, schema: str = "verifiable") -> Proble
     eval_rows = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)]
     verifier = None if env_spec else build_verifier(cfg.verifier, cfg.verifier_options, task, train_rows, stage=stage)
     if env_spec:  # the environment rewards whole episodes; its problems are the rows themselves
-        problems = [Problem(env_problem(r)["prompt"], row_reference(r), i, env_problem=env_problem(r))
-                    for i, r in enumerate(train_rows)]
-        eval_problems = [Problem(env_problem(r)["prompt"], row_reference(r), i, env_problem=env_problem(r))
-                         for i, r in enumerate(eval_rows)]
+        as_env = lambda rows: [Problem(e["prompt"], e["answer"], i, env_problem=e)  # noqa: E731
+                               for i, e in enumerate(map(env_problem, rows))]
+        problems, eval_problems = as_env(train_rows), as_env(eval_rows)
     elif verifier is not None:
         problems, skipped = check_problems(train_rows, train_source, cfg.on_bad_rows, stage=stage)
         eval_problems, eval_skipped = check_problems(eval_rows, eval_source, cfg.on_bad_rows, stage=stage)

@@ -302,6 +302,26 @@ def plan_micro_batches(lengths: list[int], n: int, max_new: int, budget: int) ->
     return batches
 
 
+def prefill_inputs(rows: list[tuple[int, int]], ids: list[list[int]], pad_id: int, dev):
+    """A micro-batch's prefill: its unique prompts in row order (the samples of a prompt share one prefill) and
+    ids / valid / pos (U, Tp) left-padded on `dev`, positions as HF generate computes them, row_of (B,) the prompt of
+    each row. Returns (prompt indices, ids, valid, pos, row_of)."""
+    prompts: list[int] = []
+    row_of = []
+    for i, _ in rows:
+        if not prompts or prompts[-1] != i:
+            prompts.append(i)
+        row_of.append(len(prompts) - 1)
+    Tp = max(len(ids[i]) for i in prompts)
+    ids_t = torch.full((len(prompts), Tp), pad_id, dtype=torch.long)  # (U, Tp) left-padded
+    valid = torch.zeros((len(prompts), Tp), dtype=torch.bool)  # (U, Tp)
+    for u, i in enumerate(prompts):
+        ids_t[u, Tp - len(ids[i]):] = torch.tensor(ids[i], dtype=torch.long)
+        valid[u, Tp - len(ids[i]):] = True
+    pos = (valid.long().cumsum(-1) - 1).clamp_(min=0)  # (U, Tp)
+    return prompts, ids_t.to(dev), valid.to(dev), pos.to(dev), torch.tensor(row_of, dtype=torch.long, device=dev)
+
+
 def _static_step(fwd) -> bool:
     """Whether this micro-batch decodes with the static step (`STATIC_DECODE`; the HF forward has none)."""
     if not hasattr(fwd, "step"):
@@ -329,23 +349,9 @@ def _run_micro_batch(fwd, rows, sampler, params, ids, limits, keys, eos, stop_ta
     finds them in, so the results do not depend on `every`. Rows keep decoding until the check that
     finishes them (their extra tokens are cut off)."""
     dev = fwd.device
-    prompts = []  # unique prompts of this micro-batch, in row order
-    row_of_list = []
-    for i, _ in rows:
-        if not prompts or prompts[-1] != i:
-            prompts.append(i)
-        row_of_list.append(len(prompts) - 1)
-    U, B = len(prompts), len(rows)
-    Tp = max(len(ids[i]) for i in prompts)
-    ids_t = torch.full((U, Tp), pad_id, dtype=torch.long)  # (U, Tp) left-padded
-    valid = torch.zeros((U, Tp), dtype=torch.bool)  # (U, Tp)
-    for u, i in enumerate(prompts):
-        p = ids[i]
-        ids_t[u, Tp - len(p):] = torch.tensor(p, dtype=torch.long)
-        valid[u, Tp - len(p):] = True
-    pos = (valid.long().cumsum(-1) - 1).clamp_(min=0)  # (U, Tp) position ids, as HF generate computes them
-    ids_t, valid, pos = ids_t.to(dev), valid.to(dev), pos.to(dev)
-    row_of = torch.tensor(row_of_list, dtype=torch.long, device=dev)  # (B,)
+    prompts, ids_t, valid, pos, row_of = prefill_inputs(rows, ids, pad_id, dev)
+    B = len(rows)
+    Tp = ids_t.shape[1]
     row_limit = [limits[i] for i, _ in rows]
     steps = max(row_limit)
     plen_l = [len(ids[i]) for i, _ in rows]

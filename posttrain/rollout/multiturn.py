@@ -51,7 +51,8 @@ from ..chat import encode_prompts, render_prompt
 from ..errors import ModelError
 from ..models import unwrap_model
 from .backends import HFForward
-from .engine import DEFAULT_MAX_BATCH_TOKENS, _eos_ids, default_backend, plan_micro_batches, select_backend
+from .engine import (DEFAULT_MAX_BATCH_TOKENS, _eos_ids, default_backend, plan_micro_batches, prefill_inputs,
+                     select_backend)
 from .records import Rollout
 from .sampling import Sampler, SamplingParams, row_uniforms
 
@@ -157,23 +158,12 @@ class _Batch:
     # ------------------------------------------------------------------ the loop
     def run(self) -> dict[tuple[int, int], Rollout]:
         fwd, B = self.fwd, self.B
-        prompts = []
-        row_of = []
-        for i, _ in self.rows:
-            if not prompts or prompts[-1] != i:
-                prompts.append(i)
-            row_of.append(len(prompts) - 1)
-        Tp = max(len(self.ids[i]) for i in prompts)
-        ids_t = torch.full((len(prompts), Tp), self.pad, dtype=torch.long)
-        valid = torch.zeros((len(prompts), Tp), dtype=torch.bool)
-        for u, i in enumerate(prompts):
-            ids_t[u, Tp - len(self.ids[i]):] = torch.tensor(self.ids[i])
-            valid[u, Tp - len(self.ids[i]):] = True
-        pos = (valid.long().cumsum(-1) - 1).clamp_(min=0)
         dev = fwd.device
+        prompts, ids_t, valid, pos, row_of = prefill_inputs(self.rows, self.ids, self.pad, dev)
+        Tp = ids_t.shape[1]
+        fwd.start(B, Tp + self.steps, max(len(self.ids[i]) for i in prompts) + self.limits.max_total_tokens + 1)
+        logits = fwd.prefill(ids_t, valid, pos, row_of)
         cols = Tp + self.steps
-        fwd.start(B, cols, max(len(self.ids[i]) for i in prompts) + self.limits.max_total_tokens + 1)
-        logits = fwd.prefill(ids_t.to(dev), valid.to(dev), pos.to(dev), torch.tensor(row_of, device=dev))
         col = Tp
         while True:
             self._collect(block=False)
