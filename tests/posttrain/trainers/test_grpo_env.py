@@ -68,15 +68,18 @@ def test_episodes_train_end_to_end_with_the_trainers_log_probs_equal_to_the_samp
 
 
 @pytest.mark.learning
-def test_grpo_learns_the_environments_reward(chat_sft, tmp_path):
+def test_grpo_learns_the_environments_reward(chat_sft, tmp_path, learning):
     """Turns: reward 1 for two or more turns, i.e. for ending a turn at eos within 12 tokens; a random model does so
-    rarely. Measured margin over seeds: scripts/test_margins.py."""
+    rarely. Margin over seeds and thread counts: scripts/test_margins.py (RESULTS.md, "Test margins")."""
     out = tmp_path / "learn"
-    assert main(_args(chat_sft, out, "max_steps=16", "prompts_per_step=8", "group_size=8", "lr=3e-3",
-                      "log_every=1")) == 0
-    steps = _steps(out)
-    first, last = sum(s["reward/mean"] for s in steps[:3]) / 3, sum(s["reward/mean"] for s in steps[-3:]) / 3
-    assert last > first + 0.2, (first, last)
+    assert main(_args(chat_sft, out, "max_steps=10", "prompts_per_step=8", "group_size=8", "lr=1e-3",
+                      "log_every=1", *learning.overrides)) == 0
+    r = [s["reward/mean"] for s in _steps(out)]
+    assert len(r) == 10
+    # step 1's samples come from the model before any update; the policy learns within a few steps
+    # (each seed's random model starts elsewhere, so the bound is on the share of the room to 1 that was closed)
+    learning.above("Turns reward, share of (1 - step 1) gained by the last 5 steps",
+                   (sum(r[-5:]) / 5 - r[0]) / max(1 - r[0], 1e-9), 0.5, r)
 
 
 def test_lora_and_resume_in_an_environment(chat_sft, tmp_path):
