@@ -11,6 +11,7 @@ CPU: `python -c "import posttrain.problems"`; exercised through GRPO (tests/post
   before anything trains (one that scores them below 1 is reported, not fatal).
 - `tokenize_problems`: prompts rendered and tokenized once (`posttrain.chat`), too-long ones dropped with a count.
 - `build_reward` -> `Reward`: the scorers of `posttrain.scoring` (verifier, reward model, or both weighted).
+- `load_env` / `build_env_reward`: a multi-turn environment (`<stage>.env`) and its episodes' reward.
 - `score_groups` / `gather_groups`: K samples per problem scored as `Group`s (identical completions of a problem
   scored once), gathered over processes in global order; a verifier that raised everywhere stops the run.
 - `load_problems`: the problems of a GRPO or distillation run (task, verifier, references, enough of them), checked
@@ -227,6 +228,19 @@ class Reward:
 def build_env_reward(env, runner) -> Reward:
     """The reward of a run in a multi-turn environment: `env.reward` of each episode (no verifier, no scorer)."""
     return Reward(None, None, None, None, set(), None, "", env, runner)
+
+
+def load_env(cfg, stage: str):
+    """The run's multi-turn environment (`<stage>.env` with `<stage>.env_options`), or None when env is empty; a
+    bad spec or option is one ConfigError line naming the key."""
+    if not cfg.env:
+        return None
+    from posttrain.verifiers.envs import get_env
+
+    try:
+        return get_env(cfg.env, **cfg.env_options)
+    except (ValueError, ImportError) as e:
+        raise ConfigError(f"{stage}.env: {e}") from None
 
 
 def build_reward(verifier, pool, rm_dir: Path | None, device, *, timeout_s: float = 0.0, on_error: str = "zero",

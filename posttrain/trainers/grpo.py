@@ -113,8 +113,8 @@ from posttrain.advantages import curriculum_weights, group_advantages, track_pas
 from posttrain.config import ConfigError, Resolved
 from posttrain.logprobs import masked_mean, sequence_logprobs
 from posttrain.losses import aggregate_token_loss, kl_penalty, policy_loss, rollout_correction, sampler_mismatch
-from posttrain.problems import (HeldOut, Problem, Reward, build_env_reward, build_reward, load_problems, preflight,
-                                sample_and_score, tokenize_problems)
+from posttrain.problems import (HeldOut, Problem, Reward, build_env_reward, build_reward, load_env, load_problems,
+                                preflight, sample_and_score, tokenize_problems)
 from posttrain.rollout.multiturn import episode_metrics
 
 
@@ -383,7 +383,7 @@ def setup(res: Resolved, cfg: GRPOConfig, ensure, stack: contextlib.ExitStack) -
     pool = stack.enter_context(VerifierPool(workers=cfg.verifier_workers, timeout_s=cfg.verifier_timeout_s or None))
     if verifier is not None:
         preflight(verifier, pool, train_rows, train_source, print)
-    env = load_env(cfg)
+    env = load_env(cfg, "grpo")
     rm_dir = ensure("rm") if cfg.reward_model == "train" else \
         (Path(cfg.reward_model) if cfg.reward_model != "none" else None)
     sft_dir = ensure("sft")
@@ -427,18 +427,6 @@ def setup(res: Resolved, cfg: GRPOConfig, ensure, stack: contextlib.ExitStack) -
     return GRPORun(res, cfg, accelerator, say, run_dir, main, sft_dir, tokenizer, model, policy, ref_model, budget,
                    recompute_old, optimizer, scheduler, ckpt, metrics, problems,
                    {p.key: i for i, p in enumerate(problems)}, reward, held_out, curriculum, rounds, start, baseline)
-
-
-def load_env(cfg: GRPOConfig):
-    """The run's environment (`grpo.env`), or None; a bad spec or option is one ConfigError line."""
-    if not cfg.env:
-        return None
-    from posttrain.verifiers.envs import get_env
-
-    try:
-        return get_env(cfg.env, **cfg.env_options)
-    except (ValueError, ImportError) as e:
-        raise ConfigError(f"grpo.env: {e}") from None
 
 
 def finish(run: GRPORun) -> Path:
