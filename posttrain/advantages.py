@@ -7,6 +7,8 @@ columns in the `RolloutBatch` layout (`posttrain/rollout/records.py`), `completi
 
 - `gae`: Generalized Advantage Estimation per token (PPO).
 - `rewards_with_kl`: the per-token RLHF reward (score at the last token, -kl_coef * KL at every token).
+- `turn_rewards_with_kl`: the same for multi-turn trajectories, plus each turn's own reward at its last sampled
+  token (environment tokens carry no reward and, in `gae`, are no time step).
 - `group_advantages`: critic-free per-sequence advantages (GRPO, RLOO, REINFORCE++).
 - `zero_variance_groups`: groups whose completions all got the same reward (no signal).
 - `track_pass_rates`, `curriculum_weights`: a pass-rate curriculum for verifier-reward RL (which problems
@@ -21,7 +23,15 @@ Choices and deviations, each named again where it is used:
   the prompt columns on the left and padding on the right are never read, and the value after
   the last completion token is 0, so bootstrapping stops at the end of each sequence. A hole
   inside a completion (e.g. masked tool output) is stepped over as verl does, not treated as
-  an episode end.
+  an episode end. For a multi-turn trajectory (sampled turns with environment tokens between them,
+  `posttrain.rollout.multiturn`) this makes the value bootstrapped after a turn's last sampled token
+  the value at the next turn's first sampled token: environment tokens are neither actions nor
+  time steps, as in verl's multi-turn GAE (observation tokens skipped) and OpenRLHF's agent
+  rollouts (action mask).
+- `turn_rewards_with_kl` finds a trajectory's turns as the maximal runs of its completion mask
+  (an environment reply is never empty, so two turns never touch); a turn's reward lands on its
+  last sampled token and the final score on the trajectory's last one, so the last turn's reward
+  and the final score add.
 - `group_advantages` uses the unbiased (N-1) standard deviation, as `torch.std`, TRL and verl
   do; `eps` is added to the std, not to the variance.
 - REINFORCE++ is implemented at the sequence level (scalar outcome rewards, KL in the loss);
@@ -111,6 +121,58 @@ def rewards_with_kl(
     rows = torch.arange(B, device=rewards.device)
     rewards[rows, last] += score.detach().to(rewards.dtype)
     return rewards
+
+
+@torch.no_grad()
+def turn_rewards_with_kl(
+    score: torch.Tensor,
+    kl_per_token: torch.Tensor,
+    completion_mask: torch.Tensor,
+    turn_rewards: torch.Tensor,
+    *,
+    kl_coef: float,
+) -> torch.Tensor:
+    """The per-token reward of multi-turn trajectories: `rewards_with_kl` plus each turn's reward.
+
+    A trajectory's completion columns are turn 1's sampled tokens, the environment's tokens (tool
+    results, the next assistant header), turn 2's sampled tokens, ... (`posttrain.rollout.multiturn`);
+    `completion_mask` (B, T) is 1 on the sampled tokens only, and the turns of a row are its maximal
+    runs of ones, in column order. `turn_rewards` (B, K) holds the reward of each row's turn k
+    (0 where the environment gives none: a reward of 0 and no reward are the same thing here). Per row:
+        r_t = -kl_coef * KL_t          at every sampled token (environment tokens get nothing: no action)
+            + turn_rewards[k]          at the last sampled token of turn k
+            + score                    at the last sampled token of the trajectory
+    `score` (B,) is the final (outcome) reward. The KL term and the score are InstructGPT's (Ouyang
+    et al. 2022, eq. 2; see `rewards_with_kl`); crediting a turn-level reward to the end of its turn
+    and letting GAE carry it back follows multi-turn PPO with turn-level rewards (Zeng et al. 2025,
+    "Reinforcing Multi-Turn Reasoning in LLM Agents via Turn-Level Reward Design", arXiv:2505.11821).
+    Pass the result to `gae` with the same mask: it steps over the environment columns, so turn k's
+    last token bootstraps from the value at turn k+1's first token.
+
+    Returns (B, T) rewards, 0 outside `completion_mask`, without grad. A nonzero reward for a turn
+    that a row does not have (K larger than its number of runs) raises, naming the rows; so does a
+    row with no sampled token (`rewards_with_kl`).
+    """
+    completion_mask = completion_mask.bool()
+    B, T = completion_mask.shape
+    if turn_rewards.dim() != 2 or turn_rewards.shape[0] != B:
+        raise ValueError(f"turn_rewards_with_kl: turn_rewards must be (B={B}, K), got {tuple(turn_rewards.shape)}")
+    rewards = rewards_with_kl(score, kl_per_token, completion_mask, kl_coef=kl_coef)  # (B, T)
+    K = turn_rewards.shape[1]
+    if K == 0:
+        return rewards
+    after = torch.cat([completion_mask[:, 1:], torch.zeros_like(completion_mask[:, :1])], dim=1)  # (B, T)
+    ends = completion_mask & ~after  # (B, T): the last sampled token of each turn
+    n_turns = ends.sum(dim=-1)  # (B,)
+    turn_rewards = turn_rewards.detach().to(rewards.dtype)
+    missing = (turn_rewards != 0) & (torch.arange(K, device=ends.device)[None, :] >= n_turns[:, None])  # (B, K)
+    if missing.any():
+        rows = missing.any(dim=-1).nonzero().flatten().tolist()
+        raise ValueError(f"turn_rewards_with_kl: rows {rows} have rewards for more turns than they have runs of "
+                         "sampled tokens")
+    turn = (ends.long().cumsum(dim=-1) - 1).clamp(0, K - 1)  # (B, T): the turn whose end a column is
+    at_end = ends & (ends.long().cumsum(dim=-1) <= K)  # (B, T): ends of turns that have a column in turn_rewards
+    return rewards + torch.where(at_end, turn_rewards.gather(1, turn), torch.zeros_like(rewards))
 
 
 # ----------------------------------------------------------------------------- critic-free: per-sequence

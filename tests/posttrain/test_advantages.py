@@ -11,6 +11,7 @@ from posttrain.advantages import (
     gae,
     group_advantages,
     rewards_with_kl,
+    turn_rewards_with_kl,
     zero_variance_groups,
 )
 
@@ -86,6 +87,87 @@ def test_rewards_with_kl_hand_computed():
 def test_rewards_with_kl_rejects_empty_completion():
     with pytest.raises(ValueError, match="rows \\[1\\]"):
         rewards_with_kl(torch.zeros(2), torch.zeros(2, 3), torch.tensor([[1, 1, 0], [0, 0, 0]]), kl_coef=0.1)
+
+
+# ----------------------------------------------------------------------------- multi-turn: per-turn rewards, GAE over turns
+# Row 0: a prompt column, turn 1 (columns 1-2), an environment token (3), turn 2 (4-5), padding (6).
+# Row 1: one turn (columns 1-3), then padding. NaN wherever a column must never be read.
+TURN_MASK = torch.tensor([[0, 1, 1, 0, 1, 1, 0], [0, 1, 1, 1, 0, 0, 0]], dtype=torch.bool)
+
+
+def test_turn_rewards_with_kl_hand_computed():
+    kl = torch.tensor([[NAN, 0.1, 0.2, NAN, 0.3, -0.1, NAN], [NAN, 0.2, 0.0, -0.2, NAN, NAN, NAN]])
+    score = torch.tensor([1.0, -1.0])
+    turns = torch.tensor([[0.5, 0.25], [2.0, 0.0]])  # row 1 has one turn: its second entry must be 0
+    r = turn_rewards_with_kl(score, kl, TURN_MASK, turns, kl_coef=0.5)
+    # -0.5 * KL at sampled tokens; turn k's reward at its last sampled token; the score at the very last one:
+    #   row 0: [0, -0.05, -0.1 + 0.5, 0 (environment), -0.15, 0.05 + 0.25 + 1, 0]
+    #   row 1: [0, -0.1, 0, 0.1 + 2 - 1, 0, 0, 0]
+    torch.testing.assert_close(r, torch.tensor([[0.0, -0.05, 0.4, 0.0, -0.15, 1.3, 0.0],
+                                                [0.0, -0.1, 0.0, 1.1, 0.0, 0.0, 0.0]]))
+    # no turn rewards: exactly rewards_with_kl
+    none = turn_rewards_with_kl(score, kl, TURN_MASK, torch.zeros(2, 2), kl_coef=0.5)
+    torch.testing.assert_close(none, rewards_with_kl(score, kl, TURN_MASK, kl_coef=0.5))
+    torch.testing.assert_close(turn_rewards_with_kl(score, kl, TURN_MASK, torch.zeros(2, 0), kl_coef=0.5), none)
+
+
+def test_gae_over_turns_hand_computed():
+    """GAE over the sampled tokens only (gamma 0.9, lambda 0.5): turn 1's last token bootstraps from the value
+    at turn 2's first token; the environment column (NaN value and reward) is no time step."""
+    kl = torch.tensor([[NAN, 0.1, 0.2, NAN, 0.3, -0.1, NAN], [NAN, 0.2, 0.0, -0.2, NAN, NAN, NAN]])
+    rewards = turn_rewards_with_kl(torch.tensor([1.0, -1.0]), kl, TURN_MASK, torch.tensor([[0.5, 0.25], [2.0, 0.0]]),
+                                   kl_coef=0.5)
+    values = torch.tensor([[NAN, 0.5, 0.4, NAN, 0.2, 0.1, NAN], [NAN, 0.3, 0.2, 0.6, NAN, NAN, NAN]])
+    rewards = torch.where(TURN_MASK, rewards, torch.full_like(rewards, NAN))  # gae must not read them either
+    a, ret = gae(rewards, values, TURN_MASK, gamma=0.9, lam=0.5)  # gamma * lam = 0.45
+    # row 0, backwards over columns 5, 4, 2, 1 (rewards 1.3, -0.15, 0.4, -0.05):
+    #   t5: delta = 1.3 - 0.1 = 1.2                                       A = 1.2
+    #   t4: delta = -0.15 + 0.9 * 0.1 - 0.2 = -0.26                       A = -0.26 + 0.45 * 1.2 = 0.28
+    #   t2: delta = 0.4 + 0.9 * V(t4) 0.2 - 0.4 = 0.18 (not V(t3))        A = 0.18 + 0.45 * 0.28 = 0.306
+    #   t1: delta = -0.05 + 0.9 * 0.4 - 0.5 = -0.19                       A = -0.19 + 0.45 * 0.306 = -0.0523
+    # row 1 (columns 3, 2, 1; rewards 1.1, 0, -0.1):
+    #   t3: delta = 1.1 - 0.6 = 0.5                                       A = 0.5
+    #   t2: delta = 0 + 0.9 * 0.6 - 0.2 = 0.34                            A = 0.34 + 0.45 * 0.5 = 0.565
+    #   t1: delta = -0.1 + 0.9 * 0.2 - 0.3 = -0.22                        A = -0.22 + 0.45 * 0.565 = 0.03425
+    torch.testing.assert_close(a, torch.tensor([[0.0, -0.0523, 0.306, 0.0, 0.28, 1.2, 0.0],
+                                                [0.0, 0.03425, 0.565, 0.5, 0.0, 0.0, 0.0]]))
+    torch.testing.assert_close(ret, torch.tensor([[0.0, 0.4477, 0.706, 0.0, 0.48, 1.3, 0.0],
+                                                  [0.0, 0.33425, 0.765, 1.1, 0.0, 0.0, 0.0]]))
+    # the same as GAE over the compressed row (its sampled tokens only, mask all ones)
+    cols = TURN_MASK[0].nonzero().flatten()
+    ac, rc = gae(rewards[:1, cols], values[:1, cols], torch.ones(1, len(cols), dtype=torch.bool), gamma=0.9, lam=0.5)
+    torch.testing.assert_close(a[:1, cols], ac)
+    torch.testing.assert_close(ret[:1, cols], rc)
+
+
+def test_turn_rewards_with_a_full_mask_and_a_turns_reward_only_moves_its_own_and_earlier_tokens():
+    g = torch.Generator().manual_seed(3)
+    B, T = 3, 9
+    kl, values, score = torch.randn(B, T, generator=g), torch.randn(B, T, generator=g), torch.randn(B, generator=g)
+    # mask all ones (one turn per row): the turn's reward adds to the score, and GAE is the plain one
+    full = torch.ones(B, T, dtype=torch.bool)
+    c = torch.tensor([[0.7], [-0.3], [0.0]])
+    r = turn_rewards_with_kl(score, kl, full, c, kl_coef=0.1)
+    torch.testing.assert_close(r, rewards_with_kl(score + c[:, 0], kl, full, kl_coef=0.1))
+    # three turns: columns 0-1, 3-5, 7 (environment columns 2 and 6, padding 8); a reward of 1 on turn 2 changes
+    # the advantages (GAE is linear in the rewards) by (gamma lam)^(steps to turn 2's end) at turns 1 and 2's
+    # tokens, counting sampled tokens only, and not at all at turn 3's
+    m = torch.tensor([[1, 1, 0, 1, 1, 1, 0, 1, 0]], dtype=torch.bool).expand(B, T)
+    base = turn_rewards_with_kl(score, kl, m, torch.zeros(B, 3), kl_coef=0.1)
+    bumped = turn_rewards_with_kl(score, kl, m, torch.tensor([[0.0, 1.0, 0.0]] * B), kl_coef=0.1)
+    torch.testing.assert_close(bumped - base, torch.tensor([[0, 0, 0, 0, 0, 1.0, 0, 0, 0]] * B))
+    gl = 0.8 * 0.6
+    da = gae(bumped, values, m, gamma=0.8, lam=0.6)[0] - gae(base, values, m, gamma=0.8, lam=0.6)[0]
+    expected = torch.tensor([[gl ** 4, gl ** 3, 0, gl ** 2, gl, 1.0, 0, 0, 0]] * B)
+    torch.testing.assert_close(da, expected)
+
+
+def test_turn_rewards_with_kl_rejects_a_reward_for_a_missing_turn():
+    with pytest.raises(ValueError, match="rows \\[1\\] have rewards for more turns"):
+        turn_rewards_with_kl(torch.zeros(2), torch.zeros(2, 7), TURN_MASK, torch.tensor([[0.0, 1.0], [0.0, 1.0]]),
+                             kl_coef=0.1)
+    with pytest.raises(ValueError, match="must be \\(B=2, K\\)"):
+        turn_rewards_with_kl(torch.zeros(2), torch.zeros(2, 7), TURN_MASK, torch.zeros(2), kl_coef=0.1)
 
 
 # ----------------------------------------------------------------------------- group advantages
