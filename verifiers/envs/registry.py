@@ -23,6 +23,7 @@ from posttrain.verifiers.registry import import_spec_file
 ENTRY_POINT_GROUP = "posttrain.envs"
 BUILTINS: dict[str, str] = {
     "calc": "posttrain.verifiers.envs.calc:CalcEnv",
+    "lookup": "posttrain.verifiers.envs.lookup:LookupEnv",
 }
 LIMIT_FIELDS = {f.name for f in dataclasses.fields(Limits)}
 
