@@ -2,6 +2,7 @@
 trainer's log-probs equal the sampler's on multi-turn trajectories, the policy learns the environment's reward,
 LoRA and resume work, saved rollouts keep the turns, and bad settings are one-line errors."""
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -108,7 +109,9 @@ def test_bad_environment_settings_are_one_line_errors(chat_sft, tmp_path, capsys
 def test_posttrain_envs_lists_the_built_ins(capsys):
     assert main(["envs"]) == 0
     out = capsys.readouterr().out
-    assert "calc  built-in" in out and "file.py:Name" in out
+    for name in ("calc", "lookup"):
+        assert re.search(rf"^{name}\s+built-in", out, re.M), out
+    assert "file.py:Name" in out
 
 
 def test_the_readmes_environment_trains_without_touching_the_package(chat_sft, tmp_path):
