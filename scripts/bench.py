@@ -46,7 +46,17 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             at eos after a few tokens, every turn answered by the calculator, <= 4 turns) against single-turn
             rollouts of the same number of sampled tokens (ignore_eos) at each batch size; the time ratio next to
             the ratio of decoding steps, (sampled + environment tokens) / sampled, and the tools' seconds. Ours
-            only: TRL's tool-calling GRPO is not run here (RESULTS.md, "Multi-turn rollouts").
+            only (TRL's tool-calling GRPO: the tools section).
+  tools     one multi-turn GRPO step in the calc environment: `posttrain grpo` with grpo.env=calc (the trainer, through
+            the CLI) against TRL's GRPOTrainer with the calculator as a tool (`tools=[calculator]`,
+            max_tool_calling_iterations, its tool-calling loop on transformers' generate), on the tiny chat model
+            after a short SFT on tiny-calc's tool-use demonstrations (--tools-sft-steps, untimed; a random model never
+            writes a call), same 64 problems, same prompt token ids (asserted), 2 prompts x 8 episodes, <= 3 turns x 48
+            tokens, <= 192 tokens in all, the calc reward; s/step, ratio, each side's turns / calls / sampled and tool
+            tokens per episode, a per-token ratio, and what the two APIs do not let us make equal. TRL needs a chat
+            template that renders `tool_calls` and a response parser: both sides get TOOL_CHAT_TEMPLATE (the preset's
+            template plus tool_calls in the calc call format), TRL's tokenizer a response_template. If TRL refuses to
+            run, the section prints why (exception and the TRL line) instead of a ratio. No memory probe.
   scaling   how cost grows with model size (--presets, default tiny and small) and sequence length: the
             rollout engine (batch 16, 32-token prompts, 64/128/256 new tokens; 64/128 with --quick) and a
             training step (forward + backward + AdamW on batch 8 of 64/128/256 tokens), tokens/s, time
@@ -62,7 +72,7 @@ medians (ppo and grpo: the first iteration(s) of every run are the warm-up). Bot
 so posttrain's glibc malloc tuning (`loop.setup`) applies to TRL's timed runs too. sft and rm also check
 that TRL trained on exactly our non-pad token count.
 
-Peak memory (every section but scaling; --no-memory skips it): each implementation runs its timed workload
+Peak memory (every section but scaling and tools; --no-memory skips it): each implementation runs its timed workload
 (generate: the first preset at the largest batch; dpo --quick: TRL's default live-reference variant only)
 once more in a FRESH Python process (`--memory-probe SECTION:IMPL`, started by the section), after the
 section's shared setup (imports, tokenizer, data, base model). We record the process's resident set just
@@ -77,10 +87,13 @@ memory is not counted).
 CPU:       python scripts/bench.py --quick            (all sections, every ratio; < 3 min on 2 idle cores)
            python scripts/bench.py --only sft --only rm --threads 2 --json runs/bench.json
            python scripts/bench.py --only scaling --presets tiny,small,base
+           python scripts/bench.py --only tools --threads 2 --json runs/bench-tools.json
+                                                      (~4 min on 2 idle cores, estimated)
 Multi-GPU: not applicable (single-process microbenchmarks; `--device cuda` runs generate and scaling on one GPU).
 Runtime:   --quick: 4 min 46 s measured single-threaded on a loaded 2-core machine (load average 3-3.5, 3 min
            15 s of CPU), memory probes included; about 2 min expected on 2 idle cores (not yet measured
-           there). Full: roughly 3x the quick run.
+           there). Full: roughly 3x the quick run. Both before the tools section, which adds ~1.5 min (--quick) to
+           ~4 min (full) on 2 idle cores, about 1 min of it the untimed SFT (estimates, not measured there).
 
 Achieved GFLOP/s counts the same useful work for both implementations:
   generation FLOPs = 2*N_block*(sum_prompt_tokens + B*(M-1)) + 2*N_head*B*M + 4*L*H*Dh*(attended key positions)
@@ -1574,6 +1587,314 @@ def bench_multiturn(args) -> dict:
     return dict(rows=rows_out)
 
 
+# ------------------------------------------------------------------ section: tools
+
+# posttrain.chat.PRESET_CHAT_TEMPLATE plus an assistant message's structured `tool_calls`, each rendered after its
+# content in the environments' call format (posttrain.verifiers.envs.format_tool_call: <tool_call>{"name": ...,
+# "arguments": {...}}</tool_call>), before the eos. TRL needs a template that renders tool_calls (its
+# supports_tool_calling check) and keeps a tool-calling turn as the model wrote it; our episodes keep the same turn
+# as its text, which renders to the same string (checked in _tools_setup), so both sides see one token sequence.
+# `tools=` is not rendered: the environment's system message already lists the tools, on both sides.
+TOOL_CHAT_TEMPLATE = (
+    "{%- for message in messages -%}"
+    "{{ '<|' + message['role'] + '|>' + message['content'] }}"
+    "{%- if message['role'] == 'assistant' -%}"
+    "{%- if message['tool_calls'] is defined and message['tool_calls'] -%}"
+    "{%- for call in message['tool_calls'] -%}"
+    "{%- set f = call['function'] if call['function'] is defined else call -%}"
+    "{{ '<tool_call>' + {'name': f['name'], 'arguments': f['arguments']} | tojson + '</tool_call>' }}"
+    "{%- endfor -%}"
+    "{%- endif -%}"
+    "{{ eos_token }}"
+    "{%- endif -%}"
+    "{%- endfor -%}"
+    "{%- if add_generation_prompt %}{{ '<|assistant|>' }}{% endif -%}"
+)
+
+
+def tool_response_template(eos_token: str) -> dict:
+    """TRL's response parser for TOOL_CHAT_TEMPLATE (a transformers `response_template`, as TRL writes them for
+    Qwen3 in trl.chat_template_utils): the assistant's text after `<|assistant|>`, each <tool_call>{json}</tool_call>
+    a call, the content up to the eos."""
+    return {"defaults": {"role": "assistant"}, "start_anchor": "<|assistant|>",
+            "fields": {"tool_calls": {"open": "<tool_call>", "close": "</tool_call>", "repeats": True,
+                                      "content": "json", "transform": {"type": "function", "function": "{content}"}},
+                       "content": {"close": eos_token, "content": "text"}}}
+
+
+TOOLS_UNEQUAL = (
+    "budgets: ours per turn (calc limits: 48 sampled tokens) and in all (192 sampled + environment tokens, 3 turns); "
+    "TRL generation_kwargs max_new_tokens=48 per generate call, max_completion_length=192 over every turn (a tool "
+    "result that would pass it is dropped and the episode ends; the last turn is cut to fit), "
+    "max_tool_calling_iterations=2 (3 generations)",
+    "a malformed call (not JSON, no </tool_call>): ours answers it with 'error: malformed ...' and the episode goes "
+    "on; TRL's parser falls back to plain text, so the turn has no call and the episode ends there",
+    "a tool error: ours returns 'error: ValueError: ...', TRL \"{'error': '...'}\" (different token counts)",
+    "a turn cut at 48 tokens: ours ends the episode (finish 'length'); TRL runs a closed call in it if it has one",
+    "decoding: ours keeps each row's KV cache across turns and feeds tool tokens beside the other rows' sampling; "
+    "TRL calls generate again for the rows that called a tool, on their whole conversation (a new prefill per turn); "
+    "ours runs the calls in its ToolRunner's threads (5 s timeout) while other rows decode, TRL one after another "
+    "between generate calls",
+    "prompt order: ours draws its prompts by seed, TRL's sampler shuffles its own way: different problems per step "
+    "from the same 64, and different random streams, so each side's turns and tokens are printed",
+    "chat template: TRL refuses the preset's own template (supports_tool_calling: it drops tool_calls); both sides "
+    "get TOOL_CHAT_TEMPLATE, which renders our episodes exactly as the preset's did, and TRL's tokenizer a "
+    "response_template (tool_response_template) that parses the calc call format",
+)
+
+
+def _tools_setup(args) -> SimpleNamespace:
+    """One multi-turn GRPO step in the calc environment: `posttrain grpo` with grpo.env=calc (the trainer, through the
+    CLI) against TRL's GRPOTrainer with the calculator as a tool (`tools=[calculator]`).
+
+    The model: the tiny preset (random init, seed 0) with a chat tokenizer trained on tiny-calc text, as the multiturn
+    section builds it, then `posttrain sft` on tiny-calc's tool-use demonstrations (--tools-sft-steps steps, batch 8,
+    lr 3e-3; untimed, ~1 min) so that it calls the calculator: a random model never writes a <tool_call>, and its
+    episodes would be single-turn on both sides. Both sides start from that SFT model, with TOOL_CHAT_TEMPLATE. It
+    calls the tool in nearly every episode (10-20% of its calls malformed at temperature 1, in the runs made while
+    writing this) but rarely copies the tool's result into its answer, so most rewards are 0: both sides' updates
+    then run (same compute) with zero advantages, and the weights barely move, so the episodes stay alike over a run.
+    Same 64 problems (CalcEnv.problems, two 3-digit numbers), prompts rendered to the same token ids (asserted), 2
+    prompts x 8 episodes per step, <= 3 turns, 48 tokens a turn, 192 in all, temperature 1, the calc reward on both
+    sides (TRL: a reward function applying CalcEnv.score to the last message), beta 0, one pass, lr 1e-4 constant,
+    clipping 1.0, fp32, no gradient checkpointing, zero-variance groups trained (ours zero_variance=keep; TRL always).
+    Time per step as in the grpo section: ours is metrics.jsonl's time/step, TRL's is between its on_step_begin and
+    on_step_end (generation, tool calls and the update all happen inside the step); the first 2 steps of every run
+    are warm-up. What could not be made equal: TOOLS_UNEQUAL, printed with the results."""
+    from posttrain.chat import PRESET_CHAT_TEMPLATE, encode_prompts
+    from posttrain.cli import main as posttrain_main
+    from posttrain.models import load_model, load_tokenizer, save_model
+    from posttrain.tasks import calc as calc_task
+    from posttrain.verifiers.envs import format_tool_call
+    from posttrain.verifiers.envs.calc import CalcEnv, calculator
+
+    root = Path(tempfile.mkdtemp(prefix="posttrain-bench-tools-"))
+    steps, group = (8, 8) if args.quick else (14, 8)
+    env = CalcEnv()
+    lim = env.limits
+    tok = train_tokenizer(calc_task.corpus(300, 0), vocab_size=512, split_digits=True, chat=True)
+    tok.chat_template = TOOL_CHAT_TEMPLATE
+    base = build_model("tiny", tok, seed=0)
+    save_model(base, tok, root / "model")
+    problems = CalcEnv.problems(64, seed=1)
+    (root / "problems.jsonl").write_text("".join(json.dumps(p) + "\n" for p in problems))
+    recipe = root / "bench-tools.yaml"
+    recipe.write_text(f"""# multi-turn GRPO step benchmark (scripts/bench.py --only tools); SFT ~1 min, then GRPO
+task: {{name: tiny-calc, n_train: 2000, n_eval: 8}}
+model: {{path: {root / 'model'}, max_length: 512, chat_template: "on"}}
+sft:
+  max_steps: {args.tools_sft_steps}
+  batch_size: 8
+  warmup_steps: 10
+  eval_every: 0
+  save_every: 0
+  final_eval_rows: 0
+grpo:
+  env: calc
+  train_file: {root / 'problems.jsonl'}
+  prompts_per_step: 2
+  group_size: {group}
+  max_new_tokens: {lim.max_total_tokens}
+  zero_variance: keep
+  lr: 1.0e-4
+  eval_every: 0
+  eval_rows: 0
+  final_eval_rows: 0
+  save_every: 0
+""")
+
+    def cli(stage: str, *overrides: str) -> None:
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            rc = posttrain_main([stage, "--recipe", str(recipe), f"run.output_dir={root / 'runs'}",
+                                 f"run.threads={args.threads}", "run.quiet=true", *overrides])
+        assert rc == 0, f"posttrain {stage} failed: " + " | ".join(out.getvalue().strip().splitlines()[-3:])
+
+    t0 = time.perf_counter()
+    cli("sft")
+    sft_dir = root / "runs" / "bench-tools" / "sft" / "final"
+    ctx = SimpleNamespace(steps=steps, group=group, base=base, sft_seconds=time.perf_counter() - t0, trl_error=None,
+                          runners={}, cleanup=lambda: shutil.rmtree(root, ignore_errors=True))
+
+    def ours() -> tuple[list[float], dict[str, float]]:
+        cli("grpo", f"max_steps={steps}")
+        metrics = root / "runs" / "bench-tools" / "grpo" / "metrics.jsonl"
+        times, phases = _cli_step_times(metrics, ("sample", "score", "train"))
+        rows = [json.loads(l) for l in metrics.read_text().splitlines()]
+        rows = [r for r in rows if "time/step" in r][2:]
+        work = {k: statistics.mean(r[f"env/{k}"] for r in rows)
+                for k in ("turns", "tool_calls", "valid_calls", "sampled_tokens", "env_tokens")}
+        work["reward"] = statistics.mean(r["reward/mean"] for r in rows)
+        return times, dict(phases, **work)
+
+    ctx.runners["posttrain"] = ours
+    try:
+        from datasets import Dataset
+        from transformers import TrainerCallback
+        from trl import GRPOConfig as TRLConfig, GRPOTrainer
+        from trl.chat_template_utils import supports_tool_calling
+    except ImportError as e:
+        ctx.trl_error = e
+        return ctx
+    printer = _trl_quiet()
+
+    def trl_tokenizer():
+        t = load_tokenizer(sft_dir)
+        t.response_template = tool_response_template(t.eos_token)
+        return t
+
+    trl_tok = trl_tokenizer()
+    preset = copy.deepcopy(trl_tok)
+    preset.chat_template = PRESET_CHAT_TEMPLATE
+    ctx.template_check = dict(preset=supports_tool_calling(preset), tools=supports_tool_calling(trl_tok))
+    # the same prompt tokens on both sides, and a tool-calling turn that TRL renders from its parsed call (content "",
+    # tool_calls) renders as our episode's text of that turn does
+    first = [env.reset(p) for p in problems]
+    ours_ids = encode_prompts(trl_tok, first)
+    trl_ids = [trl_tok.apply_chat_template(m, tools=[calculator], add_generation_prompt=True, tokenize=True,
+                                           return_dict=False) for m in first]
+    assert ours_ids == trl_ids, "TRL's prompt token ids differ from ours"
+    args_ = {"expression": problems[0]["expression"]}
+    as_text = first[0] + [{"role": "assistant", "content": format_tool_call("calculator", args_)},
+                          {"role": "tool", "content": problems[0]["answer"]}]
+    call = {"type": "function", "function": {"name": "calculator", "arguments": args_}}
+    as_call = first[0] + [{"role": "assistant", "content": "", "tool_calls": [call]},
+                          {"role": "tool", "name": "calculator", "content": problems[0]["answer"]}]
+    assert trl_tok.apply_chat_template(as_text, tokenize=False, add_generation_prompt=True) == \
+        trl_tok.apply_chat_template(as_call, tokenize=False, add_generation_prompt=True), \
+        "TOOL_CHAT_TEMPLATE renders TRL's tool-calling turn differently from our episode's"
+    ctx.prompt_tokens = statistics.mean(len(x) for x in ours_ids)
+
+    def calc_reward(completions, answer, **kwargs):
+        # the calc environment's rule; the episode ended with an answer when its last message is an assistant turn
+        # without calls (else TRL stopped it at max_tool_calling_iterations or at the token budget)
+        out = []
+        for messages, a in zip(completions, answer):
+            last = messages[-1] if messages else {}
+            finish = "answer" if last.get("role") == "assistant" and not last.get("tool_calls") else "max_turns"
+            out.append(env.score({"answer": a}, last.get("content") or "", finish)[0])
+        return out
+
+    dataset = Dataset.from_list([{"prompt": m, "answer": p["answer"]} for m, p in zip(first, problems)])
+
+    class StepProbe(TrainerCallback):
+        """Each step's time, TRL's logged tool-call counts (its metric store) and, from the step's batch (TRL keeps it
+        in _buffered_inputs: completion_mask over every completion token, tool_mask 0 on tool tokens), sampled and
+        tool tokens and turns (runs of sampled tokens) per episode."""
+
+        def __init__(self):
+            self.times, self.rows, self.t0, self.trainer = [], [], 0.0, None
+
+        def on_step_begin(self, *a, **k):
+            self.t0 = time.perf_counter()
+
+        def on_step_end(self, *a, **k):
+            _sync(args.device)
+            self.times.append(time.perf_counter() - self.t0)
+            m = self.trainer._metrics["train"]
+            calls, failed = (m[k][-1] if m.get(k) else 0.0 for k in ("tools/call_frequency", "tools/failure_frequency"))
+            row = dict(tool_calls=calls, valid_calls=calls * (1 - failed), reward=m["reward"][-1])
+            batch = self.trainer._buffered_inputs[0]
+            completion = batch["completion_mask"].bool()  # (B, T)
+            sampled = completion & batch["tool_mask"].bool()  # (B, T)
+            turns = sampled[:, 0].long() + (sampled[:, 1:] & ~sampled[:, :-1]).sum(1)  # (B,)
+            self.rows.append(dict(row, sampled_tokens=float(sampled.sum(1).float().mean()),
+                                  env_tokens=float((completion & ~sampled).sum(1).float().mean()),
+                                  turns=float(turns.float().mean())))
+
+    def trl_run() -> tuple[list[float], dict[str, float]]:
+        targs = TRLConfig(output_dir=str(root / "trl"), per_device_train_batch_size=2 * group, num_generations=group,
+                          max_completion_length=lim.max_total_tokens,
+                          generation_kwargs={"max_new_tokens": lim.max_turn_tokens},
+                          max_tool_calling_iterations=lim.max_turns - 1, temperature=1.0, beta=0.0, num_iterations=1,
+                          learning_rate=1e-4, lr_scheduler_type="constant", max_grad_norm=1.0, max_steps=steps,
+                          bf16=False, fp16=False, **_no_checkpointing(), use_cpu=args.device == "cpu",
+                          logging_strategy="no", save_strategy="no", report_to=[], disable_tqdm=True,
+                          dataloader_num_workers=0, seed=0)
+        probe = StepProbe()
+        with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+            trainer = GRPOTrainer(model=load_model(sft_dir), reward_funcs=[calc_reward], args=targs,
+                                  train_dataset=dataset, processing_class=trl_tokenizer(), tools=[calculator],
+                                  callbacks=[probe])
+            trainer.remove_callback(printer)
+            probe.trainer = trainer
+            out = trainer.train()
+        assert out.global_step == steps, f"TRL ran {out.global_step} steps, expected {steps}"
+        assert not trainer.args.gradient_checkpointing, "TRL ran with activation checkpointing"
+        rows = probe.rows[2:]
+        work = {k: statistics.mean(r[k] for r in rows) for k in rows[0]}
+        return probe.times[2:], work
+
+    ctx.runners["trl"] = trl_run
+    return ctx
+
+
+def bench_tools(args) -> dict:
+    import traceback
+
+    ctx = _tools_setup(args)
+    steps = ctx.steps
+    rounds = 1 if args.quick else 2
+    print(f"tiny: {count_parameters(ctx.base) / 1e6:.2f}M parameters, SFT on tiny-calc tool-use demonstrations "
+          f"({args.tools_sft_steps} steps, {ctx.sft_seconds:.0f} s, untimed); calc environment, 2 prompts x "
+          f"{ctx.group} episodes per step, <= 3 turns x 48 tokens, <= 192 tokens in all; {steps} steps per run "
+          f"({rounds} run(s) each, first 2 steps excluded)")
+    if ctx.trl_error is not None:
+        _trl_missing(ctx.trl_error)
+        t, work = ctx.runners["posttrain"]()
+        print(f"ours: {statistics.median(t):.3f} s/step ({work})")
+        ctx.cleanup()
+        return dict(ours_s_per_step=statistics.median(t), ours_work=work)
+    print(f"TRL's supports_tool_calling: the preset's own chat template {ctx.template_check['preset']}, "
+          f"TOOL_CHAT_TEMPLATE {ctx.template_check['tools']}; prompts: the same {ctx.prompt_tokens:.0f} token ids on "
+          "both sides (asserted)")
+    t_ours, t_trl, w_ours, w_trl = [], [], [], []
+    try:
+        for _ in range(rounds):  # alternate, so drifting load hits both
+            t, w = ctx.runners["posttrain"]()
+            t_ours, w_ours = t_ours + t, w_ours + [w]
+            t, w = ctx.runners["trl"]()
+            t_trl, w_trl = t_trl + t, w_trl + [w]
+    except (ValueError, TypeError, ImportError, RuntimeError, AttributeError, KeyError) as e:
+        if not w_ours or w_trl:
+            raise
+        where = next((f"{f.filename.split('site-packages/')[-1]}:{f.lineno}" for f in
+                      reversed(traceback.extract_tb(e.__traceback__)) if "site-packages" in f.filename), "?")
+        why = f"{type(e).__name__} at {where}: {str(e).splitlines()[0] if str(e) else ''}"
+        mo = statistics.median(t_ours)
+        print(f"TRL's GRPOTrainer cannot run this tool-calling step here, so no ratio: {why}")
+        print(f"{'posttrain grpo grpo.env=calc':<58} {mo:>7.3f} s/step")
+        ctx.cleanup()
+        return dict(ours_s_per_step=mo, ours_work=w_ours[0], trl_error=why)
+    mo, mt = statistics.median(t_ours), statistics.median(t_trl)
+    wo = {k: statistics.mean(w[k] for w in w_ours) for k in w_ours[0]}
+    wt = {k: statistics.mean(w[k] for w in w_trl) for k in w_trl[0]}
+    print(f"{'implementation':<58} {'s/step':>7} {'ratio':>7}")
+    print(f"{'TRL GRPOTrainer tools=[calculator] (fp32, no grad. ckpt)':<58} {mt:>7.3f} {mt / mo:>6.2f}x")
+    print(f"{'posttrain grpo grpo.env=calc':<58} {mo:>7.3f} {'1.00x':>7}")
+    print(f"posttrain phases (medians): sample {wo['sample']:.3f} s, score {wo['score']:.3f} s, update "
+          f"{wo['train']:.3f} s")
+    print("per episode (means over the timed steps; TRL's turns: runs of sampled tokens in its completion, its valid "
+          "calls: calls less those whose tool raised):")
+    cols = ("turns", "tool_calls", "valid_calls", "sampled_tokens", "env_tokens", "reward")
+    print(f"  {'':<10}" + "".join(f"{c.replace('_', ' '):>16}" for c in cols))
+    for name, w in (("posttrain", wo), ("TRL", wt)):
+        print(f"  {name:<10}" + "".join(f"{w[c]:>16.2f}" for c in cols))
+    per_token = {k: t / (2 * ctx.group * (w["sampled_tokens"] + w["env_tokens"])) * 1e3
+                 for k, t, w in (("posttrain", mo, wo), ("trl", mt, wt))}
+    print(f"per completion token (sampled + environment; a rough correction for the sides' different episodes, as a "
+          f"batch's cost follows its longest episode): TRL {per_token['trl']:.2f} ms, posttrain "
+          f"{per_token['posttrain']:.2f} ms, ratio {per_token['trl'] / per_token['posttrain']:.2f}x")
+    print("ratio = TRL time per step / posttrain time per step: same SFT model, problems, prompt tokens, group size, "
+          "turn and token limits, reward. Not equal (the APIs differ):")
+    for line in TOOLS_UNEQUAL:
+        print(f"  - {line}")
+    ctx.cleanup()
+    return dict(steps_per_run=steps, rounds=rounds, sft_steps=args.tools_sft_steps, sft_seconds=ctx.sft_seconds,
+                ours_s_per_step=mo, trl_s_per_step=mt, ratio=mt / mo, ours_work=wo, trl_work=wt,
+                ms_per_token=per_token, ratio_per_token=per_token["trl"] / per_token["posttrain"],
+                ours_times=t_ours, trl_times=t_trl, template_check=ctx.template_check)
+
 
 SECTIONS = {
     "generate": bench_generate,
@@ -1585,6 +1906,7 @@ SECTIONS = {
     "distill": bench_distill,
     "scaling": bench_scaling,
     "multiturn": bench_multiturn,
+    "tools": bench_tools,
     "real": bench_real,
 }
 
@@ -1622,6 +1944,8 @@ def main(argv=None) -> int:
                     help="the real section's bf16 rows: auto (only where bf16 is native and faster, as "
                          "run.mixed_precision=auto decides; emulated bf16 makes them 2-5x slower than fp32 and "
                          "triples the section's runtime), yes, no")
+    ap.add_argument("--tools-sft-steps", type=int, default=200,
+                    help="SFT steps that teach the tools section's tiny model to call the calculator (default 200)")
     ap.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # SECTION:IMPL, internal
     args = ap.parse_args(argv)
     args.argv = [a for a in argv]

@@ -77,6 +77,48 @@ def test_bench_uses_library_api_only():
             f"bench.py imports {m}.{n}, which does not exist"
 
 
+def test_bench_tools_template_and_parser_keep_the_calc_call_format():
+    """The tools section's premise, without training: TOOL_CHAT_TEMPLATE renders a conversation as the preset's
+    template does, and a tool-calling turn given as TRL's structured tool_calls exactly as our episode's text of it;
+    it passes TRL's checks (supports_tool_calling, prefix-preserving) where the preset's template fails the first;
+    tool_response_template parses the call format back into the call, an answer into content, and a malformed call
+    into no call (TRL then ends the episode: one of the differences the section prints)."""
+    pytest.importorskip("trl")
+    from trl.chat_template_utils import is_chat_template_prefix_preserving, parse_response, supports_tool_calling
+
+    from posttrain.models import train_tokenizer
+    from posttrain.verifiers.envs import format_tool_call, parse_tool_calls
+    from posttrain.verifiers.envs.calc import CalcEnv, calculator
+
+    bench = _load(SCRIPTS / "bench.py")
+    tok = train_tokenizer(["What is 347 * 582? calculator expression 201954"] * 20, vocab_size=300,
+                          split_digits=True, chat=True)
+    env, p = CalcEnv(), CalcEnv.problems(1, seed=3)[0]
+    text = format_tool_call("calculator", {"expression": p["expression"]})
+    call = {"type": "function", "function": {"name": "calculator", "arguments": {"expression": p["expression"]}}}
+    tail = [{"role": "tool", "content": p["answer"]}, {"role": "assistant", "content": p["answer"]}]
+    as_text = env.reset(p) + [{"role": "assistant", "content": text}] + tail
+    as_call = env.reset(p) + [{"role": "assistant", "content": "", "tool_calls": [call]}] + tail
+    preset = tok.apply_chat_template(as_text, tokenize=False)
+    assert not supports_tool_calling(tok)  # the preset's template drops tool_calls: TRL refuses it
+    tok.chat_template = bench.TOOL_CHAT_TEMPLATE
+    assert tok.apply_chat_template(as_text, tokenize=False) == preset
+    assert tok.apply_chat_template(as_call, tokenize=False) == preset
+    assert supports_tool_calling(tok) and is_chat_template_prefix_preserving(tok)
+
+    tok.response_template = bench.tool_response_template(tok.eos_token)
+    prefix = tok.apply_chat_template(env.reset(p), tokenize=True, add_generation_prompt=True, return_dict=False)
+
+    def parsed(s: str) -> dict:
+        return parse_response(tok, tok(s + tok.eos_token, add_special_tokens=False)["input_ids"], prefix=prefix,
+                              tools=[calculator])
+
+    assert parsed(text)["tool_calls"] == [call]
+    assert parsed(p["answer"]) == {"role": "assistant", "content": p["answer"]}
+    bad = '<tool_call>{"name": "calculator", "arguments": {"expression": "1\\u00"}}</tool_call>'
+    assert "tool_calls" not in parsed(bad) and parse_tool_calls(bad)[0].error.startswith("malformed")
+
+
 def test_test_margins_summarizes_each_check_by_its_worst_run():
     margins = _load(SCRIPTS / "test_margins.py")
     checks = [{"test": "tests/a.py::test_x", "check": "reward rise", "op": ">", "bound": 0.1, "value": v,
