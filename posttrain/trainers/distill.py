@@ -41,6 +41,11 @@ Implementation details it follows, each a config field:
  7. The teacher is frozen (no grad, eval mode) and runs on each micro-batch inside the loss, so neither its
     logits nor the student's exist for the whole batch at once: micro-batches are sized by a token budget that
     counts both models' logits (run.micro_batch_tokens overrides it).
+ 8. Multi-turn episodes (env, env_options; `posttrain.rollout.multiturn`, as grpo.env): each sample is an episode
+    in a tool-use environment. The teacher scores the whole trajectory (prompt, every sampled and every environment
+    token as context); every per-token loss and metric covers the sampled tokens only (completion_mask, 0 on the
+    environment's tokens); the reward term takes the environment's reward; held-out evaluation runs greedy
+    episodes. Steps whose samples are the teacher's (student_fraction < 1) are its own episodes in the environment.
 
 Teacher: distill.teacher names a stage of this recipe (sft, grpo, ...: its final/, trained first when missing)
 or a model directory / .gguf file. distill.teacher_model (a preset such as small, or a model directory) runs
@@ -61,6 +66,9 @@ Deviations and limits:
 - Full-vocabulary divergences hold both models' logits for a micro-batch: on a 150k vocabulary that limits
   micro-batches to a few hundred tokens (the budget does this; a top-k teacher is not implemented).
 - The teacher runs in fp32 on every process (no sharding of the teacher; no separate teacher server).
+- In an environment its tokens are context only: neither model is taught or compared on what a tool returns, and
+  the divergence ignores that the student's tool calls changed what the environment appended (the first point's
+  missing term). max_new_tokens does not bound an episode (the environment's limits do).
 """
 from __future__ import annotations
 
@@ -78,9 +86,10 @@ from posttrain import loop, sharding
 from posttrain.advantages import group_advantages, zero_variance_groups
 from posttrain.config import ConfigError, Resolved
 from posttrain.logprobs import completion_logits, masked_mean
-from posttrain.losses import policy_loss, token_divergence
-from posttrain.problems import (HeldOut, Problem, Reward, build_reward, load_problems, preflight, sample_and_score,
-                                tokenize_problems)
+from posttrain.losses import policy_loss, sampler_mismatch, token_divergence
+from posttrain.problems import (HeldOut, Problem, Reward, build_env_reward, build_reward, load_env, load_problems,
+                                preflight, sample_and_score, tokenize_problems)
+from posttrain.rollout.multiturn import episode_metrics
 
 
 @dataclass
@@ -104,6 +113,11 @@ class DistillConfig:
     """Verifier spec for the reward term and the held-out accuracy; auto: the task's; none: no verifier."""
     verifier_options: dict[str, Any] = field(default_factory=dict)
     """Keyword options of a single (not composed) verifier."""
+    env: str = ""
+    """A multi-turn environment with tools ("calc", an entry point or "file.py:Name"): each sample is an episode,
+    the environment's reward replaces the verifier's (detail 8). Empty: single completions."""
+    env_options: dict[str, Any] = field(default_factory=dict)
+    """Keyword options of the environment, its limits included (e.g. {max_turns: 3})."""
     verifier_workers: int = 2
     """Verifier worker processes; 0 scores in-process."""
     verifier_timeout_s: float = 0.0
@@ -176,8 +190,10 @@ def check_config(cfg: DistillConfig) -> None:
     if cfg.reward_weight > 0 and cfg.group_size < 2:
         raise bad(f"reward_weight > 0 needs group_size >= 2 (the group baseline of its advantages), got "
                   f"{cfg.group_size}")
-    if cfg.reward_weight > 0 and cfg.verifier == "none":
-        raise bad("reward_weight > 0 needs a verifier (verifier=none)")
+    if cfg.reward_weight > 0 and cfg.verifier == "none" and not cfg.env:
+        raise bad("reward_weight > 0 needs a verifier (verifier=none) or an environment (env)")
+    if cfg.env and cfg.verifier not in ("auto", "none"):
+        raise bad(f"verifier={cfg.verifier!r}: env={cfg.env!r} rewards whole episodes itself; leave verifier unset")
     if cfg.verifier_workers < 0 or cfg.verifier_timeout_s < 0:
         raise bad("verifier_workers and verifier_timeout_s must be >= 0")
 
@@ -212,11 +228,12 @@ def train(res: Resolved, ensure) -> Path:
                 rollouts = [r for g in got.groups for r in g.rollouts]
                 rewards = torch.tensor([x for g in got.groups for x in g.rewards], dtype=torch.float32)
                 # ---- update: one optimizer step on the step's token mean (micro-batches by the token budget)
-                m = update(run, rollouts, rewards, with_reward=cfg.reward_weight > 0 and on_policy, done=done)
+                m = update(run, rollouts, rewards, with_reward=cfg.reward_weight > 0 and on_policy, done=done,
+                           on_policy=on_policy)
                 if saving or evaluating:
                     loop.check_weights(done, run.model)
             # ---- log
-            m.update(step_metrics(rollouts, rewards, K, on_policy, run.reward is not None))
+            m.update(step_metrics(rollouts, rewards, K, on_policy, run.reward))
             m.update({"time/sample": got.sample_s, "time/score": got.score_s, "time/train": time.time() - t_train,
                       "time/step": time.time() - t_step})
             run.metrics.log(done, m, console=False)
@@ -256,8 +273,8 @@ class DistillRun:
     ckpt: loop.Checkpointer
     metrics: loop.MetricsLog
     problems: list[Problem]
-    reward: Reward | None  # None without a verifier
-    held_out: HeldOut | None  # None without a verifier
+    reward: Reward | None  # the verifier's or the environment's; None without either
+    held_out: HeldOut | None  # None without a reward
     start: int  # the first step (resume)
     baseline: dict  # the student's SFT model's held-out numbers (main process)
     teacher_eval: dict  # the teacher's (main process)
@@ -269,6 +286,7 @@ def setup(res: Resolved, cfg: DistillConfig, ensure, stack: contextlib.ExitStack
     changes), the optimizer, the resumed state and the held-out numbers of the SFT model and of the teacher."""
     from posttrain.config import STAGE_SECTIONS
     from posttrain.models import load_model, load_tokenizer, maybe_lora
+    from posttrain.verifiers.envs import ToolRunner
     from posttrain.verifiers.runner import VerifierPool
 
     schema = "prompt" if cfg.verifier == "none" else "verifiable"  # no verifier: a prompt file needs no answers
@@ -276,6 +294,7 @@ def setup(res: Resolved, cfg: DistillConfig, ensure, stack: contextlib.ExitStack
     pool = stack.enter_context(VerifierPool(workers=cfg.verifier_workers, timeout_s=cfg.verifier_timeout_s or None))
     if verifier is not None:
         preflight(verifier, pool, train_rows, train_source, print, stage="distill")
+    env = load_env(cfg, "distill")
     t_dir = teacher_dir(res, cfg, tuple(s for s in STAGE_SECTIONS if s not in ("eval", "distill")), ensure)
     sft_dir = ensure("sft")
     tokenizer = load_tokenizer(sft_dir, res.model)
@@ -293,8 +312,8 @@ def setup(res: Resolved, cfg: DistillConfig, ensure, stack: contextlib.ExitStack
     if len(problems) < cfg.prompts_per_step:
         raise loop.TrainingError(f"only {len(problems)} training prompts fit, fewer than "
                                  f"prompts_per_step={cfg.prompts_per_step}")
-    reward = build_reward(verifier, pool, None, device, timeout_s=cfg.verifier_timeout_s) \
-        if verifier is not None else None
+    reward = build_env_reward(env, stack.enter_context(ToolRunner())) if env is not None else \
+        build_reward(verifier, pool, None, device, timeout_s=cfg.verifier_timeout_s) if verifier is not None else None
     held_out = None if reward is None else HeldOut(
         eval_problems, reward, cfg.max_new_tokens, min(cfg.eval_rows, len(eval_problems)),
         min(cfg.final_eval_rows, len(eval_problems)), stage="distill",
@@ -311,17 +330,18 @@ def setup(res: Resolved, cfg: DistillConfig, ensure, stack: contextlib.ExitStack
         if main and held_out is not None else {}
     teacher_eval = teacher_baseline(held_out, teacher, tokenizer, run_dir / "teacher_eval.json", say) \
         if main and held_out is not None else {}
-    say(describe_run(cfg, t_dir, len(problems), verifier, accelerator.num_processes, device, budget))
+    say(describe_run(cfg, t_dir, len(problems), reward, accelerator.num_processes, device, budget))
     return DistillRun(res, cfg, accelerator, say, run_dir, main, sft_dir, t_dir, tokenizer, model, student, teacher,
                       len(tokenizer), budget, optimizer, scheduler, ckpt, metrics, problems, reward, held_out, start,
                       baseline, teacher_eval)
 
 
-def update(run: DistillRun, rollouts: list, rewards: torch.Tensor, *, with_reward: bool,
-           done: int) -> dict[str, float]:
+def update(run: DistillRun, rollouts: list, rewards: torch.Tensor, *, with_reward: bool, done: int,
+           on_policy: bool = False) -> dict[str, float]:
     """One optimizer step on the step's rollouts (every process holds all of them; process r takes rows r, r + W,
     ... in micro-batches of the token budget): the divergence, plus the reward term (`with_reward`, group
-    advantages of `rewards`); its metrics."""
+    advantages of `rewards`); its metrics. `on_policy`: the student sampled them, so its sampling log-probs
+    (those of the tempered distribution it sampled) are compared with the loss's (mismatch/*)."""
     from posttrain.rollout import collate_rollouts
 
     cfg, device = run.cfg, run.accelerator.device
@@ -329,6 +349,8 @@ def update(run: DistillRun, rollouts: list, rewards: torch.Tensor, *, with_rewar
     rows = {"input_ids": batch.input_ids, "attention_mask": batch.attention_mask, "loss_mask": batch.completion_mask}
     if with_reward:
         rows["advantages"] = group_advantages(rewards, cfg.group_size, estimator="grpo", std_scale="group").to(device)
+    if on_policy:
+        rows["sampler_logps"] = batch.policy_logprobs if cfg.temperature == 1.0 else batch.logprobs  # (N, T)
     world = run.accelerator.num_processes
     mbs = sharding.micro_batches(rows, torch.arange(len(rollouts), device=device), cfg.micro_batch_size,
                                  "token_mean", run.accelerator.process_index, world, run.budget)
@@ -414,7 +436,8 @@ def distill_loss(cfg: DistillConfig, model, teacher, vocab: int, with_reward: bo
                  micro_batch: tuple[dict, float, float]) -> tuple[torch.Tensor, dict[str, float]]:
     """The loss of one of `sharding.micro_batches`: the token mean of the per-token loss over its completion
     tokens (plus reward_weight x the policy-gradient term), scaled to its share of the step's tokens times W (DDP
-    averages gradients). Metrics: both KLs per token whatever the loss (comparable across runs), the NLL."""
+    averages gradients). Metrics: both KLs per token whatever the loss (comparable across runs), the NLL; with
+    the sampler's log-probs (an on-policy step) their gap to the loss's, `losses.sampler_mismatch`."""
     mb, share, _ = micro_batch
     ids, am = mb["input_ids"], mb["attention_mask"]
     s_logits, c = completion_logits(model, ids, am, mb["loss_mask"], temperature=cfg.temperature)  # (b, T-c, V)
@@ -435,6 +458,8 @@ def distill_loss(cfg: DistillConfig, model, teacher, vocab: int, with_reward: bo
             m[f"kl/{kind}"] = float(masked_mean(token_divergence(sd, td, completion_mask, kind=f"{kind}_kl"),
                                                 completion_mask))
         m["nll"] = float(masked_mean(nll.detach(), completion_mask))
+        if "sampler_logps" in mb:  # the weights that sampled: every micro-batch runs before the optimizer step
+            m.update(sampler_mismatch(logps, mb["sampler_logps"][:, c:].to(logps.device), completion_mask))
     if with_reward:  # detail 5: on-policy, so the ratio is 1 and this is REINFORCE with the group baseline
         pg, _ = policy_loss("clip", logps, logps.detach(), mb["advantages"].to(logps.device), completion_mask,
                             clip_eps=0.2, aggregation="token_mean")  # ratio 1: the clip never binds
@@ -444,17 +469,21 @@ def distill_loss(cfg: DistillConfig, model, teacher, vocab: int, with_reward: bo
 
 
 # ----------------------------------------------------------------------------- log
-def step_metrics(rollouts: list, rewards: torch.Tensor, K: int, on_policy: bool, with_reward: bool
+def step_metrics(rollouts: list, rewards: torch.Tensor, K: int, on_policy: bool, reward: Reward | None
                  ) -> dict[str, float]:
-    """Whose samples, their length and truncation, the tokens generated; with a reward, its mean and the fraction
-    of groups with identical rewards."""
+    """Whose samples, their length and truncation, the completion tokens and those that carry the loss (sampled,
+    not the environment's); with a reward, its mean and the fraction of groups with identical rewards; in an
+    environment, its episode means (env/*: turns, tool calls, sampled and environment tokens)."""
     lengths = [len(r.completion_ids) for r in rollouts]
     m = {"samples/student": float(on_policy), "completion/length": sum(lengths) / len(lengths),
          "completion/truncated": sum(r.finish_reason == "length" for r in rollouts) / len(rollouts),
-         "tokens/generated": float(sum(lengths))}
-    if with_reward:
+         "tokens/generated": float(sum(lengths)),
+         "tokens/trained": float(sum(sum(r.completion_mask) for r in rollouts))}
+    if reward is not None:
         m["reward/mean"] = float(rewards.mean())
         m["zero_var_frac"] = float(zero_variance_groups(rewards, K).float().mean()) if K > 1 else 0.0
+    if reward is not None and reward.env is not None:
+        m.update(episode_metrics(rollouts))
     return m
 
 
@@ -474,14 +503,20 @@ def teacher_baseline(held_out: HeldOut, teacher, tokenizer, path: Path, say) -> 
     return m
 
 
-def describe_run(cfg: DistillConfig, t_dir: Path, n: int, verifier, world: int, device, budget: int) -> str:
+def describe_run(cfg: DistillConfig, t_dir: Path, n: int, reward: Reward | None, world: int, device,
+                 budget: int) -> str:
     loss = f"jsd (beta {cfg.jsd_beta:g})" if cfg.loss == "jsd" else cfg.loss
+    env = None if reward is None else reward.env
+    reward_name = "" if reward is None else f"environment {env.name}" if env is not None else \
+        f"verifier {reward.verifier.name}"
     data = "the student's samples" if cfg.student_fraction == 1 else "the teacher's samples" \
         if cfg.student_fraction == 0 else f"the student's samples with probability {cfg.student_fraction:g}, else " \
                                           "the teacher's"
     return (f"[distill] teacher {t_dir}; {n} training prompts, {cfg.prompts_per_step} prompts x {cfg.group_size} "
             f"samples per step, {cfg.max_steps} steps; loss {loss} on {data}"
-            + (f" + {cfg.reward_weight:g} x verifier {verifier.name} policy gradient" if cfg.reward_weight else "")
+            + (f" + {cfg.reward_weight:g} x {reward_name} policy gradient" if cfg.reward_weight else "")
+            + (f"; episodes in environment {env.name} (at most {env.limits.max_turns} turns, tools: "
+               f"{', '.join(env.tool_functions()) or 'none'})" if env is not None else "")
             + f"; {world} process(es) on {device}; micro-batches <= {budget} tokens")
 
 

@@ -76,6 +76,8 @@ def test_a_student_equal_to_its_teacher_has_zero_loss_for_every_divergence(stude
         (s,) = _steps(out)
         assert s["loss"] == pytest.approx(0.0, abs=1e-6) and s["kl/reverse"] == pytest.approx(0.0, abs=1e-6)
         assert s["kl/forward"] == pytest.approx(0.0, abs=1e-6) and s["nll"] > 0 and s["samples/student"] == 1.0
+        assert s["mismatch/kl"] == pytest.approx(0.0, abs=1e-6)  # the loss's student log-probs are the sampler's
+        assert s["mismatch/max_ratio"] == pytest.approx(1.0, abs=1e-4) and s["tokens/trained"] == s["tokens/generated"]
 
 
 def test_lambda_zero_trains_on_the_teachers_samples_and_the_reward_term(student, sharp_teacher, tmp_path, capsys):
@@ -84,6 +86,7 @@ def test_lambda_zero_trains_on_the_teachers_samples_and_the_reward_term(student,
                       "final_eval_rows=0", "eval_rows=0", "run.quiet=false")) == 0
     steps = _steps(out)
     assert [s["samples/student"] for s in steps] == [0.0] * 6
+    assert not any("mismatch/kl" in s for s in steps)  # the teacher sampled: no student sampler to compare with
     assert all(s["loss"] == pytest.approx(s["nll"], rel=1e-5) for s in steps)  # the loss IS the sampled-token NLL
     assert steps[-1]["nll"] < steps[0]["nll"]  # SFT on a sharp teacher's samples: they are easy to fit
     assert "nll on the teacher's samples" in capsys.readouterr().out
