@@ -3,30 +3,20 @@
 CPU:        posttrain sft --recipe tiny-summarize            (~4-5 min on 2 cores, from nothing)
 Multi-GPU:  accelerate launch --num_processes 8 -m posttrain sft --recipe tiny-summarize model.path=/path/to/hf-model
 
-Reads top to bottom: build model and data, loop { batch -> loss -> optimizer step -> log
--> eval / samples -> checkpoint }, save final/ as a Hugging Face directory, then score the
-model on held-out prompts with the task's gold metric next to the untrained model.
+Reads top to bottom: `setup` (data, then the model), loop { batch -> loss -> optimizer step -> log -> eval / samples
+-> checkpoint }, `finish` (final/ in Hugging Face format; the task's gold metric next to the untrained model's).
 
 Details:
-- Completion-only loss: the mean over completion tokens (eos included) of -log p(token);
-  prompt and padding tokens are masked (`completion_mask`). The mean is over all completion
-  tokens of the optimizer batch, so gradient accumulation gives the same gradient as one
-  big batch (not a mean of per-micro-batch means).
-- `prompt_loss_weight` (default 0) adds prompt tokens to the loss with that weight, as
-  OpenAI's fine-tuning API once did. A preset built from scratch has never seen language:
-  for it the documents are the only pretraining signal, and they teach in-context copying
-  (names repeat within a document), which a summariser needs. The tiny-summarize recipe
-  sets 0.1; with a pretrained model leave it at 0.
-- Prompts go through the model's chat template when its tokenizer has one (`posttrain.chat`:
-  a local instruct checkpoint as model.path); the eos appended to completions is then its
-  end-of-turn token (e.g. Qwen's <|im_end|>).
-- Conversational rows (`data.normalize_row`): a `messages` row trains every assistant turn, a conversational
-  prompt/completion row its completion's; the turns are located in the chat template's rendering
-  (`chat.encode_conversation`), each trained through its eos, and the rest of the conversation is prompt.
-- Rows longer than model.max_length are dropped with a count (never silently truncated:
-  a truncated completion would teach the model to stop without eos).
-- Log-probs come from `posttrain.logprobs` (the single implementation); samples and the
-  final evaluation come from the rollout engine (nothing here calls `model.generate`).
+- Completion-only loss: the mean over completion tokens (eos included) of -log p(token); prompt and padding tokens
+  are masked (`completion_mask`). The mean is over all completion tokens of the optimizer batch, so gradient
+  accumulation gives the same gradient as one big batch (not a mean of per-micro-batch means).
+- `prompt_loss_weight` adds prompt tokens to the loss with that weight (as OpenAI's fine-tuning API once did): for a
+  preset built from scratch, which has never seen language, the documents are the only pretraining signal and teach
+  in-context copying (names repeat within a document) that a summariser needs (the tiny-summarize recipe sets 0.1);
+  with a pretrained model leave it at 0.
+- Chat templates, conversational rows and rows too long for model.max_length: see `setup`.
+- Log-probs come from `posttrain.logprobs` (the single implementation); samples and the final evaluation come from
+  the rollout engine (nothing here calls `model.generate`).
 """
 from __future__ import annotations
 
@@ -53,8 +43,7 @@ class SFTConfig:
     batch_size: int = 32
     """Sequences per optimizer step (global, across processes)."""
     micro_batch_size: int = 0
-    """Sequences per forward pass at most; 0 means batch_size. `run.micro_batch_tokens` also caps the padded
-    tokens of each (auto: ~2 GiB of activations for the model)."""
+    """Sequences per forward pass at most; 0 means batch_size (`run.micro_batch_tokens` caps their padded tokens)."""
     max_steps: int = 400
     """Optimizer steps."""
     warmup_steps: int = 20
@@ -162,7 +151,16 @@ class SFTRun:
 
 def setup(res: Resolved, cfg: SFTConfig, ensure) -> SFTRun:
     """Data first (a bad row must stop the run before any model loads or any run dir changes), then the base
-    model, the tokenized rows, the optimizer and the resumed state."""
+    model, the tokenized rows, the optimizer and the resumed state.
+
+    - Prompts go through the model's chat template when its tokenizer has one (`posttrain.chat`: a local instruct
+      checkpoint as model.path); the eos appended to completions is then its end-of-turn token (e.g. Qwen's
+      <|im_end|>).
+    - Conversational rows (`data.normalize_row`): a `messages` row trains every assistant turn, a conversational
+      prompt/completion row its completion's; the turns are located in the chat template's rendering
+      (`chat.encode_conversation`), each trained through its eos, and the rest of the conversation is prompt.
+    - Rows longer than model.max_length are dropped with a count (never silently truncated: a truncated completion
+      would teach the model to stop without eos)."""
     from posttrain import tasks
     from posttrain.lean.support import sharded_problem
     from posttrain.models import load_model, load_tokenizer, maybe_lora, token_budget
