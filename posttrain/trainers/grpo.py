@@ -6,11 +6,10 @@ Multi-GPU:  accelerate launch --num_processes 8 -m posttrain grpo --recipe tiny-
             (2 CPU processes: accelerate launch --config_file recipes/launch/cpu-2proc.yaml -m posttrain grpo
             --recipe tiny-countdown run.threads=1; tested against one process in tests/posttrain/test_distributed.py)
 
-Reads top to bottom: check the problems and the reward (a verifier that raises on a few worked solutions stops
-before any model loads), load the SFT model (the policy; a frozen reference only when beta > 0), score its greedy
-answers on held-out problems, then loop { rollout: P prompts x K samples in ONE `generate` call -> score in the
-verifier pool -> group advantages -> mu passes x minibatches of clipped-ratio updates -> log -> eval ->
-checkpoint }; save final/ and compare held-out greedy accuracy with the SFT model.
+Reads top to bottom: `setup` (problems and reward before any model loads, the SFT model as the policy, a frozen
+reference only when beta > 0, its held-out greedy baseline), loop { rollout: P prompts x K samples in ONE `generate`
+call -> score in the verifier pool -> group advantages -> mu passes x minibatches of clipped-ratio updates -> log ->
+eval -> checkpoint }, `finish` (final/; held-out greedy accuracy against the SFT model's).
 
 Implementation details it follows, each a config field:
  1. Group baseline (GRPO: Shao et al. 2024, DeepSeekMath §4.1; DeepSeek-R1): K samples per prompt, the group mean
@@ -20,38 +19,29 @@ Implementation details it follows, each a config field:
  3. KL to the reference with the k3 estimator, added to the loss, not the reward (GRPO eq. 4; `losses.kl_penalty`).
  4. Per-sequence token mean (GRPO eq. 3; aggregation seq_mean_token_mean).
  5. Clip-higher (DAPO: Yu et al. 2025, §3.1; clip_eps_high, 0.28 over 0.2).
- 6. Dynamic sampling (DAPO §3.2; zero_variance=resample): groups whose rewards are all equal are dropped and more
-    prompts are sampled to refill the batch (at most max_resample_rounds more rounds).
+ 6. Dynamic sampling (DAPO §3.2; zero_variance=resample; `rollout_rounds`): equal-reward groups are dropped and
+    more prompts sampled to refill the batch (at most max_resample_rounds more rounds).
  7. Token-level loss (DAPO §3.3; aggregation token_mean, the default) and beta = 0 (no reference model at all).
  8. Overlong filtering (DAPO §3.4; mask_truncated): completions cut at max_new_tokens carry no loss.
  9. Dr. GRPO (Liu et al. 2025, "Understanding R1-Zero-Like Training"): no std division (std_scale none) and a
     constant normaliser (aggregation seq_mean_token_sum_norm: token sums / (rows x max_new_tokens)).
 10. RLOO (Ahmadian et al. 2024) and REINFORCE++ (Hu et al. 2025) as other critic-free baselines (estimator).
-11. pi_old from the rollout engine (old_logprobs=rollout: no extra forward): the raw log-probs at temperature 1,
-    else those of softmax(logits / T), the distribution the loss uses (TRL, verl). With top_p < 1,
-    old_logprobs=recompute, rollout_correction or vLLM rollouts (`posttrain.rollout.vllm_backend`): one batched
-    no-grad forward of the trainer, and the sampler's log-probs are compared with it on every row.
-12. The policy-loss family (policy_loss, `losses.policy_loss`): PPO's clipped token ratio (clip); GSPO (Zheng et
-    al. 2025): one clipped ratio per sequence, the geometric mean of its token ratios (gspo), and GSPO-token
-    (gspo_token); CISPO (MiniMax-M1, 2025): the clipped importance weight, stop-gradient, times the log-prob, so
-    no token's gradient is dropped (cispo). On-policy (mu = 1, minibatches = 1, pi_old the sampler) every ratio
-    is 1 and, with aggregation seq_mean_token_mean, all four give the same gradient (tested); they differ in
-    the later updates of a batch (mu > 1 or minibatches > 1) and under a mismatched sampler.
-13. Rollout correction (rollout_correction, `losses.rollout_correction`): the sampler (bf16 rollout weights, vLLM)
-    is not the trainer, so pi_old is recomputed by the trainer and each token's loss is weighted by w = pi_old /
-    pi_sampler truncated at C (tis: Yao et al. 2025) or dropped when w leaves [1/C, C] (mask: IcePop), per token
-    or per sequence. Every step where the sampler's log-probs can be compared with the trainer's logs the gap
-    (mismatch/kl = KL(sampler || trainer), k3; mismatch/max_ratio, mismatch/min_ratio): ~0 with the built-in
-    fp32 engine, which samples with the trainer's own forward, by construction (tested below 1e-6).
-
-14. Pass-rate curriculum (prompt_sampling=pass_rate, `advantages.track_pass_rates` / `curriculum_weights`): each
-    problem's recent pass rate is tracked (an EMA over its groups) and the next prompts are drawn without
-    replacement with weight 1 - p^K - (1 - p)^K, the chance that a group of K is informative, floored so none
-    starves; unseen problems weigh 1. An option beside dynamic sampling (both can run); the pass-rate histogram
-    of the pool is logged (curriculum/*) and the table is part of the checkpoint.
+11. pi_old from the rollout engine (old_logprobs=rollout: no extra forward; TRL, verl), or recomputed by one
+    batched no-grad forward of the trainer (`loss_rows`).
+12. The policy-loss family (policy_loss, `losses.policy_loss`; `grpo_loss`): PPO's clipped token ratio (clip);
+    GSPO (Zheng et al. 2025): one clipped ratio per sequence, the geometric mean of its token ratios (gspo), and
+    GSPO-token (gspo_token); CISPO (MiniMax-M1, 2025): the clipped importance weight, stop-gradient, times the
+    log-prob, so no token's gradient is dropped (cispo).
+13. Rollout correction (rollout_correction, `losses.rollout_correction`; `apply_rollout_correction`): truncated
+    importance weights pi_old / pi_sampler (tis: Yao et al. 2025) or dropped tokens (mask: IcePop), and the
+    sampler-trainer gap logged (mismatch/*) whenever it can be measured.
+14. Pass-rate curriculum (prompt_sampling=pass_rate; `Curriculum`): problems drawn by the chance that a group of K
+    is informative given each one's tracked pass rate.
+15. Multi-turn episodes (env, env_options; `posttrain.rollout.multiturn`; `posttrain envs` lists them): each sample
+    is an episode (turns, tool calls, tool results) rewarded by the environment; the loss covers sampled tokens only.
 
 Named methods as settings (other fields at their defaults; the loss family and the aggregations are orthogonal,
-except where a config error says otherwise):
+except where `check_config` says otherwise):
 
     method        policy_loss  aggregation              std_scale  other settings
     GRPO          clip         seq_mean_token_mean      group      beta 0.04 (DeepSeekMath)
@@ -64,37 +54,24 @@ except where a config error says otherwise):
     + TIS         any          any                      any        rollout_correction tis, rollout_correction_cap 2
     + IcePop      any          any                      any        rollout_correction mask (sequence level for gspo)
 
-Config errors: policy_loss=gspo with another aggregation (its loss is a mean over sequences), policy_loss=gspo
-with a token-level rollout correction (one ratio per sequence takes one weight per sequence), a cap <= 1.
-
-Rewards come through `posttrain.scoring` only (a verifier spec such as "0.9*countdown + 0.1*format", a reward
-model, or both weighted). Checks run in a `posttrain.verifiers.runner.VerifierPool` under a hard time limit: a hung or
-crashing check scores 0 and the step goes on; one that raises scores 0 with its reason (on_verifier_error=zero)
-or stops the run (stop); a step where every check raised stops the run. Identical completions of a prompt are
-scored once (a sandboxed check is costly). One step (the unit of max_steps, logs, eval and checkpoints) is one
-batch of rollouts; everything random is a function of (seed, step), so resume=true continues exactly. Non-finite
-loss, gradient or weights stop the run naming the step and the last good checkpoint (intact). Eval: greedy
-completions of held-out problems, scored by the verifier; eval/accuracy is the pass rate of the FIRST term of a
-composition ("0.9*math + 0.1*format"). When every group is degenerate the log says why, in words.
-
-Several processes: `posttrain.sharding`'s convention. Process r samples and scores positions r, r + W, ... of
-each round's global prompt batch (a group never spans processes); the scored groups are gathered after every
-round, so every decision and statistic (resampling, advantages, metrics) is global; each minibatch is split over
-the processes by `sharding.micro_batches`. Evaluation, logs and final/ are the main process's.
+Rewards come through `posttrain.scoring` only (a verifier spec such as "0.9*countdown + 0.1*format", a reward model,
+or both weighted; checks in a verifier pool, several processes: `rollout_rounds`). One step (the unit of max_steps,
+logs, eval and checkpoints) is one batch of rollouts; everything random is a function of (seed, step), so resume=true
+continues exactly; non-finite numbers stop the run (`update`). eval/accuracy is the greedy pass rate of the FIRST
+term of a composition ("0.9*math + 0.1*format"). Degenerate steps are explained in the log (`degenerate_message`).
 
 Deviations and limits:
-- The loss uses logits / temperature when temperature != 1 (TRL, verl); the policy being trained is
-  then the tempered one. top_p < 1 samples from a truncated distribution but ratios and KL use the
-  full one (TRL does the same).
-- zero_variance=skip (the default) drops degenerate groups from the loss without refilling (DAPO's
-  filter without its resampling): cheaper, and with beta = 0 the gradient direction is unchanged;
-  with beta > 0 those rows' KL term is dropped too. "keep" trains on them as GRPO as published does.
-- The k3 KL term's gradient is that of KL(pi_ref || pi), not KL(pi || pi_ref) (see
-  `losses.kl_penalty`); GRPO as published has the same property.
-- Sequence-level rollout correction uses the geometric mean of the token ratios, not their product
-  (see `losses`); CISPO's loss value is the clipped-weight surrogate -A w, its gradient the paper's.
-- CISPO's published cap (eps_high) is not stated here as a default: clip_eps_high keeps its meaning,
-  the upper clip range, for every policy loss, and recipes set it.
+- The loss uses logits / temperature when temperature != 1 (TRL, verl); the policy being trained is then the
+  tempered one. top_p < 1 samples from a truncated distribution but ratios and KL use the full one (TRL does too).
+- zero_variance=skip (the default) drops degenerate groups from the loss without refilling (DAPO's filter without
+  its resampling): cheaper, and with beta = 0 the gradient direction is unchanged; with beta > 0 those rows' KL term
+  is dropped too. "keep" trains on them as GRPO as published does.
+- The k3 KL term's gradient is that of KL(pi_ref || pi), not KL(pi || pi_ref) (see `losses.kl_penalty`); GRPO as
+  published has the same property.
+- Sequence-level rollout correction uses the geometric mean of the token ratios, not their product (see `losses`);
+  CISPO's loss value is the clipped-weight surrogate -A w, its gradient the paper's.
+- CISPO's published cap (eps_high) is not stated here as a default: clip_eps_high keeps its meaning, the upper clip
+  range, for every policy loss, and recipes set it.
 """
 from __future__ import annotations
 
@@ -123,9 +100,7 @@ class GRPOConfig:
     verifier: str = "auto"
     """Reward verifier spec ("countdown", "0.9*math + 0.1*format", "file.py:name"); auto: the task's; none: RM only."""
     env: str = ""
-    """A multi-turn environment with tools ("calc", an entry point, or "file.py:Name"; `posttrain envs` lists them):
-    each sample is an episode (turns, tool calls, tool results: posttrain.rollout.multiturn) rewarded by the
-    environment; the loss covers the sampled tokens only. Empty: single completions scored by `verifier`."""
+    """A multi-turn environment ("calc", an entry point, "file.py:Name"; detail 15); empty: `verifier` scores."""
     env_options: dict[str, Any] = field(default_factory=dict)
     """Keyword options of the environment, its limits included (e.g. {max_turns: 3, tool_timeout_s: 2})."""
     verifier_options: dict[str, Any] = field(default_factory=dict)
@@ -163,8 +138,7 @@ class GRPOConfig:
     std_scale: Literal["group", "batch", "none"] = "group"
     """Advantage divisor: group std (GRPO), batch std, none (Dr. GRPO); reinforce_pp needs batch."""
     policy_loss: Literal["clip", "gspo", "gspo_token", "cispo"] = "clip"
-    """Policy loss: clip (PPO's clipped token ratio: GRPO, DAPO, Dr. GRPO), gspo (one clipped ratio per sequence,
-    GSPO), gspo_token (GSPO-token), cispo (clipped stop-gradient IS weight x log-prob, CISPO); see the table."""
+    """Policy loss (detail 12; the table): clip (PPO's token ratio), gspo, gspo_token (GSPO), cispo (CISPO)."""
     clip_eps: float = 0.2
     """Clip range of the ratio (lower side, and upper side unless clip_eps_high is set); GSPO used 3e-4."""
     clip_eps_high: float | None = None
@@ -180,14 +154,11 @@ class GRPOConfig:
     minibatches: int = 1
     """Optimizer updates per pass (the batch is split into this many minibatches)."""
     micro_batch_size: int = 0
-    """Rows per forward pass at most (gradient accumulation); 0: no row cap. `run.micro_batch_tokens` also caps
-    the padded tokens of each (auto: ~2 GiB of activations for the model)."""
+    """Rows per forward pass at most (gradient accumulation); 0: no cap (`run.micro_batch_tokens` caps tokens)."""
     old_logprobs: Literal["rollout", "recompute"] = "rollout"
-    """pi_old: the rollout engine's log-probs (no extra forward) or a no-grad recompute (rollout_correction,
-    top_p < 1 at temperature != 1 and vLLM rollouts recompute whatever this says)."""
+    """pi_old (detail 11): the engine's log-probs or a no-grad recompute (some settings recompute regardless)."""
     rollout_correction: Literal["none", "tis", "mask"] = "none"
-    """Correct for a sampler that is not the trainer (bf16 rollout weights, vLLM): tis (truncated importance
-    weights min(w, cap)) or mask (drop tokens whose w = pi_old / pi_sampler leaves [1/cap, cap], IcePop)."""
+    """Correct for a sampler that is not the trainer (detail 13): tis (weights min(w, cap)) or mask (IcePop)."""
     rollout_correction_level: Literal["token", "sequence"] = "token"
     """Weights per token, or per sequence (the geometric mean of its token ratios; gspo needs this)."""
     rollout_correction_cap: float = 2.0
@@ -199,8 +170,7 @@ class GRPOConfig:
     max_resample_rounds: int = 2
     """Extra sampling rounds per step at most when zero_variance=resample."""
     prompt_sampling: Literal["uniform", "pass_rate"] = "uniform"
-    """Which problems a step samples: uniform (seeded epochs), or pass_rate (a curriculum: weighted by the chance
-    that a group is informative given the problem's tracked pass rate; needs a verifier)."""
+    """Which problems a step samples: uniform (seeded epochs) or pass_rate (detail 14; needs a verifier)."""
     curriculum_floor: float = 0.05
     """pass_rate: the smallest sampling weight (always-solved and never-solved problems keep this much)."""
     curriculum_decay: float = 0.5
@@ -232,8 +202,7 @@ class GRPOConfig:
     keep_checkpoints: int = 2
     """Checkpoints kept on disk (oldest deleted first)."""
     save_rollouts_every: int = 0
-    """Steps between saving a step's scored rollouts to rollouts/step-NNNNNN.jsonl (0: never); read them with
-    `posttrain rollouts RUN_DIR`."""
+    """Steps between saving scored rollouts to rollouts/step-NNNNNN.jsonl (`posttrain rollouts DIR`); 0: never."""
     seed: int = 0
     """Seed of prompt order, sampling and row shuffles."""
     resume: bool = False
@@ -456,7 +425,13 @@ def round_order_seed(seed: int, rnd: int) -> int:
 
 @dataclass
 class Curriculum:
-    """Detail 14: the pass-rate table over the training problems and the weighted draw of a round's prompts."""
+    """Detail 14: the pass-rate table over the training problems and the weighted draw of a round's prompts.
+
+    Pass-rate curriculum (prompt_sampling=pass_rate, `advantages.track_pass_rates` / `curriculum_weights`): each
+    problem's recent pass rate is tracked (an EMA over its groups) and the next prompts are drawn without
+    replacement with weight 1 - p^K - (1 - p)^K, the chance that a group of K is informative, floored so none
+    starves; unseen problems weigh 1. An option beside dynamic sampling (both can run); the pass-rate histogram
+    of the pool is logged (curriculum/*) and the table is part of the checkpoint."""
 
     rates: torch.Tensor  # (N,) tracked pass rate per problem
     seen: torch.Tensor  # (N,) bool: sampled at least once
@@ -522,7 +497,16 @@ def rollout_rounds(run: GRPORun, step: int) -> tuple[StepBatch, int, dict[str, f
     """The step's rollouts, in rounds: each round's global prompt batch (the data order, or the curriculum's draw),
     K samples per prompt, scored in the verifier pool and gathered (`problems.sample_and_score`: every process
     holds every group); with zero_variance=resample, more rounds until P groups are informative (DAPO dynamic
-    sampling). Returns the step's batch, the distinct completions scored and this process's sample / score time."""
+    sampling). Returns the step's batch, the distinct completions scored and this process's sample / score time.
+
+    Checks run in a `posttrain.verifiers.runner.VerifierPool` under a hard time limit: a hung or crashing check
+    scores 0 and the step goes on; one that raises scores 0 with its reason (on_verifier_error=zero) or stops the
+    run (stop); a step where every check raised stops the run. Identical completions of a prompt are scored once
+    (a sandboxed check is costly). Several processes (`posttrain.sharding`'s convention): process r samples and
+    scores positions r, r + W, ... of each round's global prompt batch (a group never spans processes); the
+    scored groups are gathered after every round, so every decision and statistic (resampling, advantages,
+    metrics) is global; each minibatch is split over the processes by `sharding.micro_batches` (`update`).
+    Evaluation, logs and final/ are the main process's."""
     from posttrain.rollout import SamplingParams
 
     cfg, K, P = run.cfg, run.cfg.group_size, run.cfg.prompts_per_step
@@ -551,7 +535,12 @@ def loss_rows(cfg: GRPOConfig, step_batch: StepBatch, accelerator, pad_id: int, 
     """The rows of the loss: the kept groups' tokens, loss mask and group advantages, pi_old (the engine's, or
     recomputed by `old_model`) and the reference log-probs (beta > 0); None when no group is kept. The no-grad
     log-probs are computed in shards (micro-batches of at most `budget` padded tokens) and gathered: every
-    process holds every row."""
+    process holds every row.
+
+    Detail 11: pi_old from the rollout engine (old_logprobs=rollout: no extra forward) is the raw log-probs at
+    temperature 1, else those of softmax(logits / T), the distribution the loss uses (TRL, verl). With top_p < 1,
+    old_logprobs=recompute, rollout_correction or vLLM rollouts (`posttrain.rollout.vllm_backend`): one batched
+    no-grad forward of the trainer, and the sampler's log-probs are compared with it on every row."""
     from posttrain.rollout import collate_rollouts
 
     K = cfg.group_size
@@ -586,7 +575,14 @@ def apply_rollout_correction(cfg: GRPOConfig, rows: dict[str, torch.Tensor] | No
     """Where pi_old was recomputed by the trainer, the sampler's log-probs are a second opinion: the gap between
     the two over every row (`losses.sampler_mismatch`: mismatch/kl, mismatch/max_ratio, mismatch/min_ratio) and,
     with rollout_correction, the importance weights `rows["is_weights"]` and the loss mask without the tokens
-    it drops (`losses.rollout_correction`); their metrics. The rows change in place."""
+    it drops (`losses.rollout_correction`); their metrics. The rows change in place.
+
+    Detail 13: the sampler (bf16 rollout weights, vLLM) is not the trainer, so pi_old is recomputed by the trainer
+    and each token's loss is weighted by w = pi_old / pi_sampler truncated at C (tis: Yao et al. 2025) or dropped
+    when w leaves [1/C, C] (mask: IcePop), per token or per sequence. Every step where the sampler's log-probs can
+    be compared with the trainer's logs the gap (mismatch/kl = KL(sampler || trainer), k3; mismatch/max_ratio,
+    mismatch/min_ratio): ~0 with the built-in fp32 engine, which samples with the trainer's own forward, by
+    construction (tested below 1e-6)."""
     sampler = None if rows is None else rows.pop("sampler_logps", None)
     if sampler is None:
         return {}
@@ -603,7 +599,11 @@ def grpo_loss(cfg: GRPOConfig, model, mb: dict[str, torch.Tensor], scale: float,
               with_entropy: bool, mismatch: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
     """The GRPO loss of one micro-batch (policy term + beta * KL term, same aggregation), times `scale`.
     `mismatch`: also the sampler-trainer gap `losses.sampler_mismatch` (old_logps are the sampler's and the weights
-    are the ones it sampled with: the first minibatch of the first pass)."""
+    are the ones it sampled with: the first minibatch of the first pass).
+
+    Detail 12: on-policy (mu = 1, minibatches = 1, pi_old the sampler) every ratio is 1 and, with aggregation
+    seq_mean_token_mean, all four policy losses give the same gradient (tested); they differ in the later updates
+    of a batch (mu > 1 or minibatches > 1) and under a mismatched sampler."""
     loss_mask = mb["loss_mask"]
     logps, entropy = sequence_logprobs(model, mb["input_ids"], mb["attention_mask"], loss_mask,
                                        temperature=cfg.temperature, return_entropy=with_entropy,
@@ -642,7 +642,9 @@ def update(cfg: GRPOConfig, accelerator, model, optimizer, scheduler, rows: dict
     sampler's log-probs (not recomputed), so the first minibatch also measures `mismatch/kl`.
 
     Every process holds the same rows, so the row order of each pass (seeded by step and pass) and the
-    minibatches are the same everywhere; `sharding.micro_batches` gives process r rows r, r + W, ... of each."""
+    minibatches are the same everywhere; `sharding.micro_batches` gives process r rows r, r + W, ... of each.
+    Non-finite loss, gradient or weights stop the run naming the step and the last good checkpoint (intact;
+    `loop.optimizer_step`, and `loop.check_weights` in the loop)."""
     if rows is None:
         return {"loss": 0.0, "rows/trained": 0.0, "updates": 0.0}
     usable = (rows["loss_mask"].sum(-1) > 0).nonzero().flatten().cpu()  # rows with at least one loss token
