@@ -7,68 +7,34 @@ Multi-GPU:  accelerate launch --num_processes 8 -m posttrain distill --recipe ti
             (2 CPU processes: accelerate launch --config_file recipes/launch/cpu-2proc.yaml -m posttrain distill
             --recipe tiny-math run.threads=1)
 
-Reads top to bottom: check the prompts (and the verifier, when there is one), load the student (the SFT model) and
-the teacher (frozen), check that they share one tokenizer, score the teacher's and the student's greedy answers
-on held-out problems, then loop { rollout: P prompts x K samples from the student (or, with probability
-1 - student_fraction, from the teacher) -> score (verifier metrics; the reward term) -> one optimizer step on the
-per-token divergence (and the reward term) -> log -> eval -> checkpoint }; save final/ and compare held-out
-greedy accuracy with the student's SFT model and with the teacher.
+Reads top to bottom: `setup` (prompts, verifier, the student and the frozen teacher, both scored on held-out
+problems), loop { rollout (detail 1) -> score -> one optimizer step (`update`) -> log -> eval -> checkpoint }, `finish`.
 
 Implementation details it follows, each a config field:
  1. On-policy data (GKD: Agarwal et al. 2024, "On-Policy Distillation of Language Models: Learning from
-    Self-Generated Mistakes", §3): the student's own samples at `temperature`, so it is taught in the states
-    it reaches itself, not the teacher's (the train-test mismatch of supervised KD). student_fraction is GKD's
-    lambda: each step's samples come from the student with that probability, else from the teacher (seeded
-    by step; 0 is supervised KD on the teacher's samples).
- 2. The per-token divergence over the whole vocabulary (`losses.token_divergence`, loss): reverse KL
-    KL(student || teacher) (the default: mode-seeking, the loss of on-policy distillation in GKD, MiniLLM (Gu
-    et al. 2024) and Thinking Machines' "On-Policy Distillation", 2025), forward KL, or GKD's generalised JSD
-    (jsd_beta). loss=nll is the negative log-likelihood of the sampled tokens: with student_fraction=0 that is
-    SFT of the student on the teacher's samples (sequence-level KD, Kim & Rush 2016), the baseline of the
-    distillation-vs-SFT comparison at the same prompts, samples and steps.
- 3. One token mean over the step's completion tokens (every process's), one optimizer step per batch of
-    samples: on-policy, so no importance ratio and no clipping (GKD; TRL's GKDTrainer).
- 4. Both distributions at the same temperature: logits / temperature for the student and the teacher when
-    temperature != 1 (the student samples from its tempered distribution, so that is the one taught).
- 5. An optional verifier reward (reward_weight > 0): reward_weight x a policy-gradient term with group
-    advantages (GRPO's group baseline, `advantages.group_advantages`; K = group_size >= 2 samples per prompt)
-    on the student's own samples, added to the divergence (GKD §3.2, "RL fine-tuning with on-policy GKD";
-    Qwen3's and Thinking Machines' distillation mix it the same way). Steps whose samples are the teacher's
-    carry no reward term (they are not the student's policy).
- 6. Teacher and student share one tokenizer, checked before training (vocabulary, special tokens): the
-    divergence compares distributions id by id. Their sizes may differ. A teacher whose output layer has more
-    rows than the tokenizer (padded vocabularies) is compared on the tokenizer's ids only.
- 7. The teacher is frozen (no grad, eval mode) and runs on each micro-batch inside the loss, so neither its
-    logits nor the student's exist for the whole batch at once: micro-batches are sized by a token budget that
-    counts both models' logits (run.micro_batch_tokens overrides it).
- 8. Multi-turn episodes (env, env_options; `posttrain.rollout.multiturn`, as grpo.env): each sample is an episode
-    in a tool-use environment. The teacher scores the whole trajectory (prompt, every sampled and every environment
-    token as context); every per-token loss and metric covers the sampled tokens only (completion_mask, 0 on the
-    environment's tokens); the reward term takes the environment's reward; held-out evaluation runs greedy
-    episodes. Steps whose samples are the teacher's (student_fraction < 1) are its own episodes in the environment.
-
-Teacher: distill.teacher names a stage of this recipe (sft, grpo, ...: its final/, trained first when missing)
-or a model directory / .gguf file. distill.teacher_model (a preset such as small, or a model directory) runs
-that stage's chain with another model, in its own run tree <run.output_dir>/model-<name>/<recipe>/ (the same
-task, so the same tokenizer for a preset). The student is this recipe's SFT model (model.start_from=base: the
-model as it is).
-
-Several processes: `posttrain.sharding`'s convention, as GRPO: process r samples positions r, r + W, ... of each
-step's global prompt batch, the groups are gathered (every process holds every row), and the step's rows are
-split over the processes by `sharding.micro_batches`. Evaluation, logs and final/ are the main process's.
+    Self-Generated Mistakes", §3): the student's own samples at `temperature`, so it is taught in the states it
+    reaches itself, not the teacher's (supervised KD's train-test mismatch); student_fraction is GKD's lambda.
+ 2. The per-token divergence over the whole vocabulary (loss; `distill_loss`): reverse KL (the default: GKD,
+    MiniLLM, Thinking Machines), forward KL, GKD's generalised JSD (jsd_beta), or nll (the SFT baseline).
+ 3. On-policy: one optimizer step per batch on the token mean over its completion tokens (every process's), no
+    importance ratio, no clipping (GKD; TRL's GKDTrainer).
+ 4. Both distributions at the same temperature, logits / temperature: the student's tempered one is the one taught.
+ 5. An optional reward term (reward_weight; `distill_loss`): a group-baseline policy gradient (GKD §3.2; Qwen3).
+ 6. Teacher and student share one tokenizer, checked before training (`check_same_tokenizer`); sizes may differ.
+ 7. The frozen teacher runs on each micro-batch inside the loss, sized by a token budget (`distill_budget`).
+ 8. Multi-turn episodes (env; `update`): the teacher scores whole trajectories, the loss covers sampled tokens only.
 
 Deviations and limits:
 - The divergence is summed per token over the student's sampled prefixes, as in GKD: its gradient treats each
   position's distribution as the target and ignores that the student's choice of earlier tokens changed which
-  prefixes it will be scored on (the sequence-level reverse KL's score-function term; MiniLLM keeps it with a
-  policy gradient). Thinking Machines' sampled-token estimator (log S - log P of the sampled token as a
-  per-token reward) is not offered: with a shared tokenizer the exact per-token divergence is cheap here.
+  prefixes it is scored on (the sequence-level reverse KL's score-function term; MiniLLM keeps it with a policy
+  gradient). Thinking Machines' sampled-token estimator (log S - log P of the sampled token as a per-token reward)
+  is not offered: with a shared tokenizer the exact per-token divergence is cheap here.
 - Full-vocabulary divergences hold both models' logits for a micro-batch: on a 150k vocabulary that limits
   micro-batches to a few hundred tokens (the budget does this; a top-k teacher is not implemented).
 - The teacher runs in fp32 on every process (no sharding of the teacher; no separate teacher server).
-- In an environment its tokens are context only: neither model is taught or compared on what a tool returns, and
-  the divergence ignores that the student's tool calls changed what the environment appended (the first point's
-  missing term). max_new_tokens does not bound an episode (the environment's limits do).
+- An environment's tokens are context only (neither model is taught what a tool returns); the divergence ignores
+  that the student's tool calls changed them (the first point's term). Its limits, not max_new_tokens, end episodes.
 """
 from __future__ import annotations
 
@@ -89,33 +55,30 @@ from posttrain.logprobs import completion_logits, masked_mean
 from posttrain.losses import policy_loss, sampler_mismatch, token_divergence
 from posttrain.problems import (HeldOut, Problem, Reward, build_env_reward, build_reward, load_env, load_problems,
                                 preflight, sample_and_score, tokenize_problems)
+from posttrain.rollout import SamplingParams
 from posttrain.rollout.multiturn import episode_metrics
 
 
 @dataclass
 class DistillConfig:
     teacher: str = "grpo"
-    """The teacher: a stage of this recipe (sft, grpo, ...: its final/, trained first when missing) or a model
-    directory / .gguf file; it must share the student's tokenizer."""
+    """A stage of this recipe (its final/, built when missing) or a model directory / .gguf file (`teacher_dir`)."""
     teacher_model: str = ""
-    """Run the teacher's stage with this model instead of model.path (a preset such as small, or a model
-    directory), in <run.output_dir>/model-<name>/; empty: the recipe's own model."""
+    """Run the teacher's stage with this model (a preset such as small, or a model directory); empty: model.path."""
     loss: Literal["reverse_kl", "forward_kl", "jsd", "nll"] = "reverse_kl"
-    """Per-token loss: reverse_kl (KL(student || teacher), on-policy distillation), forward_kl, jsd (GKD's
-    generalised JSD, jsd_beta), nll (the sampled tokens' NLL: with student_fraction=0, SFT on teacher samples)."""
+    """Per-token loss (detail 2): reverse_kl (KL(student || teacher)), forward_kl, jsd (jsd_beta), nll."""
     jsd_beta: float = 0.5
     """beta of loss=jsd, in (0, 1): near 0 it is forward-KL-like, near 1 reverse-KL-like."""
     student_fraction: float = 1.0
-    """GKD's lambda: the probability that a step's samples are the student's (else the teacher's); 1: on-policy."""
+    """GKD's lambda: the chance a step's samples are the student's (seeded by step), else the teacher's; 0: KD."""
     reward_weight: float = 0.0
-    """Weight of a policy-gradient term on the verifier reward (group advantages; needs group_size >= 2)."""
+    """Weight of a policy-gradient term on the reward (verifier or env; group advantages: group_size >= 2)."""
     verifier: str = "auto"
     """Verifier spec for the reward term and the held-out accuracy; auto: the task's; none: no verifier."""
     verifier_options: dict[str, Any] = field(default_factory=dict)
     """Keyword options of a single (not composed) verifier."""
     env: str = ""
-    """A multi-turn environment with tools ("calc", an entry point or "file.py:Name"): each sample is an episode,
-    the environment's reward replaces the verifier's (detail 8). Empty: single completions."""
+    """A multi-turn environment ("calc", an entry point, "file.py:Name"; detail 8); empty: single completions."""
     env_options: dict[str, Any] = field(default_factory=dict)
     """Keyword options of the environment, its limits included (e.g. {max_turns: 3})."""
     verifier_workers: int = 2
@@ -201,8 +164,6 @@ def check_config(cfg: DistillConfig) -> None:
 # ----------------------------------------------------------------------------- train
 def train(res: Resolved, ensure) -> Path:
     """On-policy distillation of the teacher into the recipe's SFT model; returns the final model directory."""
-    from posttrain.rollout import SamplingParams
-
     cfg: DistillConfig = res.stage_cfg
     check_config(cfg)
     K, P = cfg.group_size, cfg.prompts_per_step
@@ -283,7 +244,8 @@ class DistillRun:
 def setup(res: Resolved, cfg: DistillConfig, ensure, stack: contextlib.ExitStack) -> DistillRun:
     """Prompts and the verifier first (a bad row or a broken verifier stops before any model loads; the verifier
     pool lives in `stack`), then the teacher and the SFT model (one tokenizer: checked before the run directory
-    changes), the optimizer, the resumed state and the held-out numbers of the SFT model and of the teacher."""
+    changes), the optimizer, the resumed state and the held-out numbers of the SFT model and of the teacher. The
+    student is this recipe's SFT model (model.start_from=base: the model as it is)."""
     from posttrain.config import STAGE_SECTIONS
     from posttrain.models import load_model, load_tokenizer, maybe_lora
     from posttrain.verifiers.envs import ToolRunner
@@ -341,7 +303,18 @@ def update(run: DistillRun, rollouts: list, rewards: torch.Tensor, *, with_rewar
     """One optimizer step on the step's rollouts (every process holds all of them; process r takes rows r, r + W,
     ... in micro-batches of the token budget): the divergence, plus the reward term (`with_reward`, group
     advantages of `rewards`); its metrics. `on_policy`: the student sampled them, so its sampling log-probs
-    (those of the tempered distribution it sampled) are compared with the loss's (mismatch/*)."""
+    (those of the tempered distribution it sampled) are compared with the loss's (mismatch/*).
+
+    Several processes: `posttrain.sharding`'s convention, as GRPO: process r sampled positions r, r + W, ... of
+    the step's global prompt batch, the groups were gathered (every process holds every row), and the step's rows
+    are split over the processes by `sharding.micro_batches`. Evaluation, logs and final/ are the main process's.
+
+    Detail 8, multi-turn episodes (env, env_options; `posttrain.rollout.multiturn`, as grpo.env): each sample is
+    an episode in a tool-use environment. The teacher scores the whole trajectory (prompt, every sampled and every
+    environment token as context); every per-token loss and metric covers the sampled tokens only (the loss mask
+    is completion_mask, 0 on the environment's tokens); the reward term takes the environment's reward; held-out
+    evaluation runs greedy episodes. Steps whose samples are the teacher's (student_fraction < 1) are its own
+    episodes in the environment."""
     from posttrain.rollout import collate_rollouts
 
     cfg, device = run.cfg, run.accelerator.device
@@ -385,7 +358,12 @@ def finish(run: DistillRun) -> Path:
 
 def teacher_dir(res: Resolved, cfg: DistillConfig, stages: tuple[str, ...], ensure) -> Path:
     """The teacher's model directory: a stage's output (built first when missing; with teacher_model, in that
-    model's run tree), a .gguf file dequantized once (as model.path=FILE.gguf), or the directory given."""
+    model's run tree), a .gguf file dequantized once (as model.path=FILE.gguf), or the directory given.
+
+    distill.teacher names a stage of this recipe (sft, grpo, ...: its final/) or a model directory / .gguf file.
+    distill.teacher_model (a preset such as small, or a model directory) runs that stage's chain with another
+    model, in its own run tree <run.output_dir>/model-<name>/<recipe>/ (the same task, so the same tokenizer for a
+    preset)."""
     from posttrain import model_files
     from posttrain.errors import ModelError
     from posttrain.models import is_model_dir
@@ -404,7 +382,10 @@ def teacher_dir(res: Resolved, cfg: DistillConfig, stages: tuple[str, ...], ensu
 
 
 def check_same_tokenizer(student_tok, teacher_tok, teacher_path: Path) -> None:
-    """Detail 6: one tokenizer for both (a ModelError naming the first difference otherwise)."""
+    """Detail 6: one tokenizer for both, vocabulary and special tokens (a ModelError naming the first difference
+    otherwise): the divergence compares the two next-token distributions id by id. The models' sizes may differ; a
+    teacher whose output layer has more rows than the tokenizer (padded vocabularies) is compared on the
+    tokenizer's ids only (`DistillRun.vocab`)."""
     from posttrain.errors import ModelError
 
     a, b = student_tok.get_vocab(), teacher_tok.get_vocab()
@@ -420,8 +401,10 @@ def check_same_tokenizer(student_tok, teacher_tok, teacher_path: Path) -> None:
 
 
 def distill_budget(setting: int, student, teacher) -> int:
-    """Detail 7: padded tokens per micro-batch whose activations (the student's, both models' full logits, their
-    softmaxes and the divergence's temporaries: ~8 vocabulary-size fp32 vectors) take ACTIVATION_BUDGET_BYTES."""
+    """Detail 7: the teacher is frozen (no grad, eval mode) and runs on each micro-batch inside the loss, so neither
+    its logits nor the student's exist for the whole batch at once. Padded tokens per micro-batch whose activations
+    (the student's, both models' full logits, their softmaxes and the divergence's temporaries: ~8 vocabulary-size
+    fp32 vectors) take ACTIVATION_BUDGET_BYTES; `setting` (run.micro_batch_tokens) overrides it."""
     from posttrain.models import ACTIVATION_BUDGET_BYTES, activation_bytes_per_token, unwrap_model
 
     if setting:
@@ -437,7 +420,19 @@ def distill_loss(cfg: DistillConfig, model, teacher, vocab: int, with_reward: bo
     """The loss of one of `sharding.micro_batches`: the token mean of the per-token loss over its completion
     tokens (plus reward_weight x the policy-gradient term), scaled to its share of the step's tokens times W (DDP
     averages gradients). Metrics: both KLs per token whatever the loss (comparable across runs), the NLL; with
-    the sampler's log-probs (an on-policy step) their gap to the loss's, `losses.sampler_mismatch`."""
+    the sampler's log-probs (an on-policy step) their gap to the loss's, `losses.sampler_mismatch`.
+
+    Detail 2 (`losses.token_divergence`): reverse KL, KL(student || teacher), the default: mode-seeking, the loss
+    of on-policy distillation in GKD, MiniLLM (Gu et al. 2024) and Thinking Machines' "On-Policy Distillation"
+    (2025); forward KL; GKD's generalised JSD (jsd_beta). loss=nll is the negative log-likelihood of the sampled
+    tokens: with student_fraction=0 that is SFT of the student on the teacher's samples (sequence-level KD, Kim &
+    Rush 2016), the baseline of the distillation-vs-SFT comparison at the same prompts, samples and steps.
+    Detail 4: both models' logits / temperature when temperature != 1 (the student samples from its tempered
+    distribution, so that is the one taught). Detail 5: reward_weight x a policy-gradient term with group
+    advantages (GRPO's group baseline, `advantages.group_advantages`; K = group_size >= 2 samples per prompt) on
+    the student's own samples, added to the divergence (GKD §3.2, "RL fine-tuning with on-policy GKD"; Qwen3's and
+    Thinking Machines' distillation mix it the same way); steps whose samples are the teacher's carry no reward
+    term (they are not the student's policy)."""
     mb, share, _ = micro_batch
     ids, am = mb["input_ids"], mb["attention_mask"]
     s_logits, c = completion_logits(model, ids, am, mb["loss_mask"], temperature=cfg.temperature)  # (b, T-c, V)
