@@ -14,14 +14,13 @@ Implementation details it follows, each with its source and flag (tested in test
  4. Hinge / SLiC-HF (Zhao et al. 2023, in TRL's form; `loss_type=hinge`): relu(1 - beta h).
  5. RPO (Pang et al. 2024; TRL's rpo_alpha; `chosen_nll_weight`): + weight x per-token NLL of the chosen side.
  6. Prefix sharing (`share_prompt`): a pair is ONE row, prompt + chosen + rejected, under a 4D mask in which the
-    rejected tokens see the prompt and themselves (`preferences.collate_shared_prompt`, `logprobs.packed_logprobs`);
-    false: chosen rows then rejected rows in one forward (TRL's concatenated_forward). Same log-probs either way.
+    rejected tokens see the prompt and themselves (`preferences.collate_shared_prompt`); false: chosen rows, then
+    rejected rows, in one forward (TRL's concatenated_forward). The log-probs are the same either way.
  7. Precomputed vs live reference (`reference`): "precomputed" (TRL's precompute_ref_log_probs) keeps only the
     SFT model's log-prob sums of the pairs, taken before the first update; "live" a frozen copy (same numbers).
  8. Online / iterative DPO (Guo et al. 2024, online AI feedback; `online`, `online_every`, `online_*`): every
-    online_every steps, pairs sampled from the current policy on training prompts, labelled by the gold
-    preference or the reward model (`online_labeler`) as the prefs stage does, replace the training pairs.
-    `save_rollouts_every` saves a regeneration's samples with their labels and pair roles (`posttrain rollouts`).
+    online_every steps, pairs sampled from the policy, labelled as the prefs stage does (`online_labeler`: gold
+    or reward model), replace the training pairs; `save_rollouts_every` saves them (`posttrain rollouts`).
  9. Evaluation (`eval_every`, `eval_pairs`, `eval_rows`, `proxy_rm`, `final_eval_rows`): held-out pair loss and
     implicit-reward accuracy; for a gold task `evaluation.policy_eval` (gold metrics, win-rate vs SFT, proxy RM
     reward, KL to the reference), the over-optimisation plot of Gao et al. 2022, `evaluation.compare_with_sft`.
@@ -30,17 +29,14 @@ Implementation details it follows, each with its source and flag (tested in test
 11. ORPO (Hong et al. 2024, eq. 6-7; `loss_type=orpo`, `beta` as ORPO's lambda, as TRL names it): the chosen
     side's per-token NLL + lambda x -log sigmoid(log-odds ratio) (`losses.orpo_loss`): one stage, reference-free.
 12. KTO (Ethayarajh et al. 2024, eq. 7-8; `loss_type=kto`, `beta`, `desirable_weight`, `undesirable_weight`):
-    unpaired completions labelled desirable or not (TRL's unpaired format: prompt, completion, label; a file of
-    pairs is unpaired as TRL's unpair_preference_dataset does), each pushed above or below the reference point
-    z0, a KL(pi || pi_ref) estimate from completions under ANOTHER row's prompt (`losses.kto_loss`). Each row
-    travels as a pair (its completion, its KL partner) so prefix sharing and the precomputed reference apply
-    (`preferences.check_unpaired`).
+    unpaired completions (TRL's format: prompt, completion, label; pairs unpaired as TRL does), each pushed above
+    or below the reference point z0, a KL(pi || pi_ref) estimate from completions under ANOTHER row's prompt
+    (`losses.kto_loss`; rows travel as (completion, KL partner) pairs: `preferences.check_unpaired`).
 
 Deviations and limits:
 - IPO on length-averaged log-probs (as TRL); Azar et al. define it on sequence log-likelihoods.
-- KTO's z0 is the mean over each micro-batch's KL partners (TRL: over the device batch, gathered across
-  processes); each row's KL partner is fixed (the next row with another prompt), not redrawn per batch. Online
-  KTO and KTO with chosen_nll_weight are config errors.
+- KTO's z0 is the mean over each micro-batch's KL partners (TRL: the device batch, gathered across processes);
+  each row's KL partner is fixed (the next row with another prompt), not redrawn per batch.
 - Online DPO labels a batch of pairs every online_every steps; Guo et al. label fresh pairs at every step.
 - reference=precomputed: the KL eval and online pairs need the reference on NEW sequences: the SFT model is
   loaded from disk for that moment (LoRA: the policy with its adapters off, no copy).
@@ -77,9 +73,8 @@ class DPOConfig:
     beta: float = 0.1
     """KL strength: implicit reward = beta * (log pi - log pi_ref)."""
     loss_type: Literal["sigmoid", "ipo", "hinge", "simpo", "orpo", "kto"] = "sigmoid"
-    """sigmoid: DPO; ipo: IPO on length-averaged log-probs; hinge: SLiC-HF calibration loss; simpo: SimPO and orpo:
-    ORPO (both reference-free: beta is SimPO's beta, paper 2-10, and ORPO's lambda, paper 0.1-0.2); kto: KTO on
-    unpaired labelled completions (pairs are unpaired)."""
+    """sigmoid: DPO; ipo: IPO (length-averaged); hinge: SLiC-HF; simpo: SimPO and orpo: ORPO (reference-free; beta
+    is SimPO's beta, paper 2-10, and ORPO's lambda, paper 0.1-0.2); kto: KTO on unpaired labelled completions."""
     desirable_weight: float = 1.0
     """KTO's lambda_D, the weight of desirable rows (the paper keeps lambda_D n_D / (lambda_U n_U) in [1, 4/3])."""
     undesirable_weight: float = 1.0
@@ -146,8 +141,7 @@ class DPOConfig:
     online_temperature: float = 1.0
     """Sampling temperature of online generation."""
     save_rollouts_every: int = 0
-    """Online DPO: save the samples of the regenerations at multiples of this many steps (a multiple of
-    online_every) to rollouts/step-NNNNNN.jsonl, with their labels and pair roles (0: never; `posttrain rollouts`)."""
+    """Online DPO: save the regenerations' samples every this many steps (0: never; `posttrain rollouts`)."""
     on_bad_rows: Literal["error", "skip"] = "error"
     """Bad pairs (chosen == rejected, empty side, too long): stop with the file and row, or skip with a count."""
     seed: int = 0
