@@ -5,6 +5,7 @@ Multi-GPU:  accelerate launch --num_processes 8 -m posttrain ppo --recipe tiny-s
             (2 CPU processes: accelerate launch --config_file recipes/launch/cpu-2proc.yaml -m posttrain ppo
             --recipe tiny-summarize run.threads=1; tested against one process in tests/posttrain/test_distributed.py)
 LoRA:       posttrain ppo --recipe tiny-summarize lora.enabled=true
+Tools:      posttrain ppo --recipe tiny-calc env=calc reward=env value_init=policy   (multi-turn episodes, detail 20)
 
 Implementation details, numbered as in Huang et al. ("The N Implementation Details of RLHF with PPO", 2022; "The N+
 Implementation Details of RLHF with PPO: A Case Study on TL;DR Summarization", 2024); each flag's effect is tested in
@@ -38,6 +39,23 @@ tests/posttrain/trainers/test_ppo.py (the losses and GAE themselves in test_loss
 17. Entropy bonus (`entropy_coef`): 0 by default, as in the RLHF implementations Huang et al. study.
 18. Several epochs (`ppo_epochs`) of minibatches (`minibatch_size`), reshuffled every epoch (seeded).
 19. Learning-rate annealing (`schedule`): linear to 0 over all optimizer steps by default.
+20. Multi-turn episodes (`env`, `env_options`, reward=env; tests/posttrain/trainers/test_ppo_env.py): a rollout is
+    an episode in a tool-use environment (`posttrain.rollout.multiturn.generate_episodes`): turn 1's sampled
+    tokens, the environment's tokens (tool results, the next assistant header), turn 2's sampled tokens, ...; the
+    score (details 1-3) is the environment's final reward. Sampled tokens are the actions and the only time
+    steps: the KL penalty, the per-token rewards (`advantages.turn_rewards_with_kl`: each turn's reward, when the
+    environment gives one, at that turn's last sampled token, the score at the episode's last one), GAE (`gae`
+    steps over environment tokens, so a turn's last token bootstraps from the value at the next turn's first
+    sampled token; verl and OpenRLHF treat environment tokens so), advantage whitening, the policy and entropy
+    terms and the value loss all cover sampled tokens only. Environment tokens are context: the old, reference
+    and updated log-probs and the values are computed over the whole trajectory, and the values at environment
+    tokens are neither read nor trained. Held-out evaluation is greedy episodes (`problems.HeldOut`: eval/reward,
+    eval/accuracy, eval/env/*) against the SFT model's, and every iteration logs env/* (turns, tool calls, errors,
+    tokens). Rule: reward=env if and only if env is set; value_init=policy (there is no reward model to copy) and
+    no reward_model. Not supported: per-turn rewards are not shaped (details 1-3 shape the final score only: with
+    reward_norm on, a turn's reward and the normalised score are on different scales); `max_new_tokens` does not
+    apply (the environment's limits do); no win-rate, gold or proxy curve (the environment's reward is the
+    measure); turns are not time steps of their own (no turn-level value or discount: gamma counts tokens).
 
 `save_rollouts_every` writes an iteration's samples with their raw and shaped scores, KL penalty and mean advantage
 to rollouts/step-NNNNNN.jsonl (`posttrain rollouts RUN_DIR`), and sends them as a table to trackers that show tables.
@@ -54,12 +72,15 @@ the main process evaluates and writes metrics.jsonl, final/ and eval.json.
 
 LoRA (`models.maybe_lora`): policy and value model (SEQ_CLS: its head trains fully) get adapters; the reference is
 the policy with them off (`models.reference_view`): 3 sets of base weights. final/ is saved merged. See RESULTS.md.
+In an environment (detail 20) every process runs its rows' episodes (a row's episode depends only on its prompt
+key and the iteration's seed) and the rollouts are gathered as above; the tool calls run in one `ToolRunner`.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -67,7 +88,7 @@ import numpy as np
 import torch
 
 from posttrain import evaluation, loop, models, sharding, tasks
-from posttrain.advantages import AdaptiveKLController, FixedKLController, gae, rewards_with_kl
+from posttrain.advantages import AdaptiveKLController, FixedKLController, gae, rewards_with_kl, turn_rewards_with_kl
 from posttrain.config import ConfigError, Resolved
 from posttrain.data import row_spans, token_groups
 from posttrain.lean import train as lean
@@ -75,14 +96,23 @@ from posttrain.lean.support import lean_support
 from posttrain.logprobs import masked_mean, masked_sum, masked_whiten, sequence_logprobs
 from posttrain import losses
 from posttrain.losses import kl_penalty, rollout_correction, sampler_mismatch, value_loss
+from posttrain.problems import HeldOut, Problem, build_env_reward, env_problem
 from posttrain.rollout import SamplingParams, collate_rollouts, generate
+from posttrain.rollout.multiturn import episode_metrics, generate_episodes
 from posttrain.scoring import GoldScorer, RewardModelScorer
 
 
 @dataclass
 class PPOConfig:
-    reward: Literal["rm", "gold"] = "rm"
-    """rm: the reward model (reward_model, else the rm stage output, built if missing); gold: the task's gold scorer."""
+    reward: Literal["rm", "gold", "env"] = "rm"
+    """rm: the reward model (reward_model, else the rm stage output, built if missing); gold: the task's gold scorer;
+    env: the final reward of `env`'s episodes (set with env, and only with it)."""
+    env: str = ""
+    """A multi-turn environment with tools ("calc", an entry point, or "file.py:Name"; `posttrain envs` lists them),
+    with reward=env and value_init=policy: each rollout is an episode (detail 20); per-turn rewards are credited to
+    their turns; the losses cover sampled tokens only. Empty: single completions."""
+    env_options: dict[str, Any] = field(default_factory=dict)
+    """Keyword options of the environment, its limits included (e.g. {max_turns: 3, tool_timeout_s: 2})."""
     reward_model: str = ""
     """Reward-model directory; empty: runs/<recipe>/rm/final (with reward=gold only the proxy curve, if it exists)."""
     max_steps: int = 40
@@ -109,7 +139,7 @@ class PPOConfig:
     scale_logits_by_temperature: bool = True
     """Divide logits by temperature for every log-prob of the update (old, new, reference); off: temperature 1."""
     max_new_tokens: int = 64
-    """Rollout and evaluation generation budget."""
+    """Rollout and evaluation generation budget (not with env: the environment's limits apply)."""
     gamma: float = 1.0
     """GAE discount."""
     lam: float = 0.95
@@ -202,6 +232,18 @@ def check_config(cfg: PPOConfig) -> None:
                           f"{cfg.kl_target}, {cfg.kl_horizon}")
     if cfg.reward_norm == "init" and cfg.reward_norm_prompts < 2:
         raise ConfigError(f"ppo.reward_norm_prompts must be >= 2 with reward_norm=init, got {cfg.reward_norm_prompts}")
+    # detail 20: reward=env if and only if env is set; nothing of a reward model with it
+    if cfg.env and cfg.reward != "env":
+        raise ConfigError(f"ppo.env={cfg.env!r} rewards whole episodes itself: set ppo.reward=env "
+                          f"(reward={cfg.reward} would be ignored)")
+    if cfg.reward == "env" and not cfg.env:
+        raise ConfigError("ppo.reward=env needs ppo.env, the environment whose episodes are rewarded (e.g. env=calc)")
+    if cfg.env and cfg.reward_model:
+        raise ConfigError(f"ppo.reward_model is unused in an environment (env={cfg.env!r} rewards the episodes and "
+                          "the value model starts from the policy): leave it unset")
+    if cfg.env and cfg.value_init == "reward":
+        raise ConfigError("ppo.value_init=reward copies a reward model, and a run in an environment (ppo.env) has "
+                          "none: set ppo.value_init=policy")
 
 
 def check_processes(cfg: PPOConfig, world: int) -> None:
@@ -216,44 +258,47 @@ def train(res: Resolved, ensure) -> Path:
     """PPO-for-RLHF from the SFT model; returns the final policy directory."""
     cfg: PPOConfig = res.stage_cfg
     check_config(cfg)
-    run = setup(res, cfg, ensure)  # inputs, models, optimizers, resume, reward statistics, the SFT baseline
-    for it in range(run.start, cfg.max_steps):
-        done, t_it = it + 1, time.time()
-        # ---- rollout (the shared engine; prompts and samples seeded by (seed, iteration)) and score: the batch is
-        # global, each process samples and scores its share, then every process holds all of it
-        idx = loop.batch_indices(len(run.train_rows), cfg.rollout_batch_size, cfg.seed, it)
-        rollouts, raw, t = rollout_and_score(run.accelerator, run.nets, cfg, run.train_rows, idx,
-                                             sample_seed(cfg.seed, it))
-        # ---- log-probs (old policy, reference) and values at rollout time, KL-penalised per-token rewards, GAE,
-        # whitening (global: every process holds the same tensors)
-        batch = rollout_batch(run, rollouts, raw)
-        # ---- ppo_epochs x minibatches of policy and value updates
-        saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
-        with loop.naming_checkpoint(run.ckpt, f"PPO iteration {done}"):
-            update_metrics = update(run, batch, it)
-            if saving or (cfg.eval_every and done % cfg.eval_every == 0):
-                loop.check_weights(done, run.nets.policy, run.nets.value, unit="iteration")
-        # ---- rollout inspection: the iteration's samples with their scores, KL penalties and advantages
-        if run.main and cfg.save_rollouts_every and done % cfg.save_rollouts_every == 0:
-            table = save_scored_rollouts(rollouts, raw, batch.scores, batch.adv, batch.completion_mask,
-                                         run.kl_ctl.value, run.run_dir, done)
-            run.metrics.log_table("rollouts", table, done)
-        # ---- KL controller (detail 5; a no-op when fixed)
-        mean_kl, kl_coef_used = float(batch.seq_kl.mean()), run.kl_ctl.value
-        run.kl_ctl.update(mean_kl, cfg.rollout_batch_size)
-        # ---- log
-        if done % cfg.log_every == 0 or done == cfg.max_steps:
-            run.metrics.log(done, {**iteration_metrics(batch, raw, mean_kl, kl_coef_used), **update_metrics,
-                                   "time/rollout_s": t["sample"], "time/score_s": t["score"],
-                                   "time/iteration_s": time.time() - t_it})
-        # ---- eval
-        if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps):
-            evaluate(done, res.task.name, run.accelerator, run.nets, run.held_out, run.baseline, cfg, run.metrics,
-                     run.say)
-        # ---- checkpoint (the value model's side, the KL controller and the reward statistics as extra)
-        if saving:
-            save_checkpoint(run, done)
-    return finish(run)
+    with contextlib.ExitStack() as stack:  # an environment's ToolRunner (detail 20)
+        run = setup(res, cfg, ensure, stack)  # inputs, models, optimizers, resume, reward statistics, SFT baseline
+        for it in range(run.start, cfg.max_steps):
+            done, t_it = it + 1, time.time()
+            # ---- rollout (the shared engine, or episodes in the environment; prompts and samples seeded by (seed,
+            # iteration)) and score: the batch is global, each process samples and scores its share, then every
+            # process holds all of it
+            idx = loop.batch_indices(len(run.train_rows), cfg.rollout_batch_size, cfg.seed, it)
+            rollouts, raw, t = rollout_and_score(run.accelerator, run.nets, cfg, run.train_rows, idx,
+                                                 sample_seed(cfg.seed, it))
+            # ---- log-probs (old policy, reference) and values at rollout time, KL-penalised per-token rewards (with
+            # the turns' rewards), GAE, whitening (global: every process holds the same tensors)
+            batch = rollout_batch(run, rollouts, raw)
+            # ---- ppo_epochs x minibatches of policy and value updates
+            saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
+            with loop.naming_checkpoint(run.ckpt, f"PPO iteration {done}"):
+                update_metrics = update(run, batch, it)
+                if saving or (cfg.eval_every and done % cfg.eval_every == 0):
+                    loop.check_weights(done, run.nets.policy, run.nets.value, unit="iteration")
+            # ---- rollout inspection: the iteration's samples with their scores, KL penalties and advantages
+            if run.main and cfg.save_rollouts_every and done % cfg.save_rollouts_every == 0:
+                table = save_scored_rollouts(rollouts, raw, batch.scores, batch.adv, batch.completion_mask,
+                                             run.kl_ctl.value, run.run_dir, done, batch.turn_rewards)
+                run.metrics.log_table("rollouts", table, done)
+            # ---- KL controller (detail 5; a no-op when fixed)
+            mean_kl, kl_coef_used = float(batch.seq_kl.mean()), run.kl_ctl.value
+            run.kl_ctl.update(mean_kl, cfg.rollout_batch_size)
+            # ---- log (in an environment: its turns, tool calls and errors, detail 20)
+            if done % cfg.log_every == 0 or done == cfg.max_steps:
+                run.metrics.log(done, {**iteration_metrics(batch, raw, mean_kl, kl_coef_used), **update_metrics,
+                                       **(episode_metrics(rollouts) if run.nets.env is not None else {}),
+                                       "time/rollout_s": t["sample"], "time/score_s": t["score"],
+                                       "time/iteration_s": time.time() - t_it})
+            # ---- eval
+            if cfg.eval_every and (done % cfg.eval_every == 0 or done == cfg.max_steps):
+                evaluate(done, res.task.name, run.accelerator, run.nets, run.held_out, run.baseline, cfg,
+                         run.metrics, run.say, run.episodes)
+            # ---- checkpoint (the value model's side, the KL controller and the reward statistics as extra)
+            if saving:
+                save_checkpoint(run, done)
+        return finish(run)
 
 
 # ----------------------------------------------------------------------------- setup and the end of a run
@@ -281,8 +326,10 @@ class PPORun:
     nets: PPOModels
     budget: int  # padded tokens per micro-batch (memory)
     train_rows: list[dict]
-    held_out: list[dict]  # held-out rows with gold meta (main process)
+    held_out: list[dict]  # held-out rows with gold meta (main process; none in an environment)
     baseline: list[str]  # the SFT model's completions of them
+    episodes: HeldOut | None  # in an environment: greedy held-out episodes (main process), else None
+    episodes_baseline: dict  # the SFT model's numbers on them (`HeldOut.sft_baseline`)
     opt_p: Any  # the policy's optimizer and scheduler
     sched_p: Any
     opt_v: Any  # the value model's
@@ -294,16 +341,20 @@ class PPORun:
     start: int  # the first iteration (resume)
 
 
-def setup(res: Resolved, cfg: PPOConfig, ensure) -> PPORun:
+def setup(res: Resolved, cfg: PPOConfig, ensure, stack: contextlib.ExitStack) -> PPORun:
     """The inputs (checked before the run directory changes), the models, their optimizers and schedules, the
     resumed state (PPO's own part of the checkpoint restored here), the reward statistics and the SFT model's
-    held-out completions."""
-    train_rows, eval_rows, sft_dir, rm_dir = load_inputs(res, cfg, ensure)
+    held-out completions (in an environment: its held-out episodes; the ToolRunner lives in `stack`)."""
+    from posttrain.verifiers.envs import ToolRunner
+
+    train_rows, eval_rows, sft_dir, rm_dir, env = load_inputs(res, cfg, ensure)
     accelerator, say = loop.start_run(res, cfg.seed, cfg.resume, check=lambda acc: check_processes(cfg, acc.num_processes))
     world, main, dev = accelerator.num_processes, accelerator.is_main_process, accelerator.device
     nets = build_models(res, cfg, sft_dir, rm_dir, dev, say, main)
+    if env is not None:  # detail 20
+        nets.env, nets.runner = env, stack.enter_context(ToolRunner())
     budget = models.token_budget(res.run.micro_batch_tokens, nets.policy)  # padded tokens per micro-batch (memory)
-    held_out = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)] if main else []
+    held_out = eval_rows[: max(cfg.eval_rows, cfg.final_eval_rows)] if main and env is None else []
     baseline = evaluation.complete(nets.policy, nets.tokenizer, [r["prompt"] for r in held_out],
                                    max_new_tokens=cfg.max_new_tokens) if held_out else []  # the SFT model's
     n_mb = cfg.rollout_batch_size // cfg.minibatch_size
@@ -327,14 +378,24 @@ def setup(res: Resolved, cfg: PPOConfig, ensure) -> PPORun:
         kl_ctl.load_state_dict(extra["kl_controller"])
     if cfg.reward_norm == "init" and norm is None:
         norm = measure_reward_norm(accelerator, nets, cfg, train_rows, say)
-    if state["step"] == 0 and cfg.eval_every:
+    episodes = episodes_baseline = None
+    if env is not None and main:  # detail 20: greedy held-out episodes, the SFT model's read back on resume
+        problems = [Problem(e["prompt"], e["answer"], i, env_problem=e) for i, e in enumerate(eval_rows)]
+        episodes = HeldOut(problems, build_env_reward(env, nets.runner), cfg.max_new_tokens,
+                           min(cfg.eval_rows, len(problems)), min(cfg.final_eval_rows, len(problems)), stage="ppo")
+        episodes_baseline = episodes.sft_baseline(accelerator.unwrap_model(nets.policy), nets.tokenizer,
+                                                  res.stage_dir() / "sft_eval.json", state["step"], metrics, say)
+    if state["step"] == 0 and cfg.eval_every and env is None:
         evaluate(0, res.task.name, accelerator, nets, held_out, baseline, cfg, metrics, say)
+    what = {"rm": f" ({rm_dir})", "env": "" if env is None else f" ({env.name}: episodes of at most "
+            f"{env.limits.max_turns} turns, {env.limits.max_total_tokens} tokens)"}.get(cfg.reward, "")
     say(f"[ppo] {cfg.max_steps} iterations x {cfg.rollout_batch_size} rollouts, {cfg.ppo_epochs} epochs x {n_mb} "
-        f"minibatches of {cfg.minibatch_size}; reward {cfg.reward}" + (f" ({rm_dir})" if cfg.reward == "rm" else "")
-        + f", value from {cfg.value_init}, KL {cfg.kl_estimator} coef {kl_ctl.value:g} ({cfg.kl_control}), "
-        f"temperature {cfg.temperature}; {world} process(es) on {dev}")
+        f"minibatches of {cfg.minibatch_size}; reward {cfg.reward}{what}, value from {cfg.value_init}, KL "
+        f"{cfg.kl_estimator} coef {kl_ctl.value:g} ({cfg.kl_control}), temperature {cfg.temperature}; {world} "
+        f"process(es) on {dev}")
     return PPORun(res, cfg, accelerator, say, res.stage_dir(), main, sft_dir, rm_dir, nets, budget, train_rows,
-                  held_out, baseline, opt_p, sched_p, opt_v, sched_v, kl_ctl, ckpt, metrics, norm, state["step"])
+                  held_out, baseline, episodes, episodes_baseline or {}, opt_p, sched_p, opt_v, sched_v, kl_ctl, ckpt,
+                  metrics, norm, state["step"])
 
 
 def save_checkpoint(run: PPORun, done: int) -> None:
@@ -348,7 +409,8 @@ def save_checkpoint(run: PPORun, done: int) -> None:
 
 
 def finish(run: PPORun) -> Path:
-    """final/ (the policy, a HF directory), the over-optimisation plot, the comparison with the SFT model."""
+    """final/ (the policy, a HF directory), the over-optimisation plot, the comparison with the SFT model (in an
+    environment: held-out greedy episodes, no plot)."""
     cfg, res, run_dir = run.cfg, run.res, run.run_dir
     final = run_dir / "final"
     whole = loop.full_state_dict(run.accelerator, run.nets.policy)  # every process: gathers a sharded model
@@ -358,9 +420,13 @@ def finish(run: PPORun) -> Path:
         run.say(f"[ppo] saved {final}")
         report: dict[str, Any] = {"model": str(final), "reference": str(run.sft_dir), "reward": cfg.reward,
                                   "reward_model": str(run.rm_dir) if run.rm_dir else None, "reward_norm": run.norm}
-        note = evaluation.plot_gold_vs_proxy(list(loop.iter_jsonl(run_dir / "metrics.jsonl")),
-                                             run_dir / "overoptimization.png", title=f"{res.recipe} PPO")
-        run.say(f"[ppo] over-optimisation plot: {note}")
+        if run.episodes is not None:  # detail 20: the environment's reward on greedy held-out episodes
+            report.update(env=cfg.env, **run.episodes.compare(pol, run.nets.tokenizer, run.episodes_baseline,
+                                                              run.metrics, cfg.max_steps, run.say))
+        else:
+            note = evaluation.plot_gold_vs_proxy(list(loop.iter_jsonl(run_dir / "metrics.jsonl")),
+                                                 run_dir / "overoptimization.png", title=f"{res.recipe} PPO")
+            run.say(f"[ppo] over-optimisation plot: {note}")
         if cfg.final_eval_rows and run.held_out:
             report.update(evaluation.compare_with_sft(
                 "ppo", res.task.name, pol, run.nets.reference, run.nets.tokenizer, run.held_out[: cfg.final_eval_rows],
@@ -386,14 +452,17 @@ class RolloutBatch:
     seq_kl: torch.Tensor  # (B,) k1 per sequence, the KL controller's quantity
     logprob_gap: float  # max |trainer - sampler| log-prob over completion tokens
     mismatch: dict[str, float]  # `losses.sampler_mismatch` and `losses.rollout_correction`'s metrics
+    turn_rewards: torch.Tensor | None = None  # (B, K) in an environment: each episode's per-turn rewards (detail 20)
 
 
 def rollout_batch(run: PPORun, rollouts: list, raw: torch.Tensor) -> RolloutBatch:
     """Scores shaped (details 1-3); log-probs of the old policy and the reference and the values at rollout time
-    (no grad; each process its rows, gathered); the sampler compared with the trainer and the rollout correction
-    (detail 16); KL-penalised per-token rewards, GAE and whitening (details 4-8)."""
+    (no grad; each process its rows, gathered; in an environment over the whole trajectories); the sampler
+    compared with the trainer and the rollout correction (detail 16); KL-penalised per-token rewards (with the
+    turns' rewards, detail 20), GAE and whitening (details 4-8), over the sampled tokens."""
     cfg, accelerator, nets, dev, budget = run.cfg, run.accelerator, run.nets, run.accelerator.device, run.budget
     temp_lp = logprob_temperature(cfg)
+    turns = episode_turn_rewards(rollouts, nets.env.name) if nets.env is not None else None  # (B, K)
     ended = torch.tensor([ro.finish_reason != "length" for ro in rollouts])  # (B,)
     scores = shape_scores(raw, ended, cfg, run.norm)  # (B,) details 1-3
     batch = collate_rollouts(rollouts, nets.tokenizer.pad_token_id).to(dev)
@@ -409,11 +478,37 @@ def rollout_batch(run: PPORun, rollouts: list, raw: torch.Tensor) -> RolloutBatc
     is_w, policy_mask, corr = rollout_correction(old_logps, engine_lp, cm, kind=cfg.rollout_correction,
                                                  level=cfg.rollout_correction_level, cap=cfg.rollout_correction_cap)
     seq_kl = masked_sum(old_logps - ref_logps, cm, -1)  # (B,) k1 per sequence, the controller's quantity
-    adv = advantages_and_returns(cfg, scores.to(dev), old_logps, ref_logps, old_values, cm, run.kl_ctl.value)
+    adv = advantages_and_returns(cfg, scores.to(dev), old_logps, ref_logps, old_values, cm, run.kl_ctl.value,
+                                 None if turns is None else turns.to(dev))
     data = dict(input_ids=batch.input_ids, attention_mask=batch.attention_mask, completion_mask=cm,  # (B, T) each
                 policy_mask=policy_mask, old_logps=old_logps, old_values=old_values, advantages=adv["advantages"],
                 returns=adv["returns"], **({} if is_w is None else {"is_weights": is_w}))
-    return RolloutBatch(data, cm, ended, scores, adv, seq_kl, lp_gap, {**mismatch, **corr})
+    return RolloutBatch(data, cm, ended, scores, adv, seq_kl, lp_gap, {**mismatch, **corr}, turns)
+
+
+def episode_turn_rewards(rollouts: list, env_name: str) -> torch.Tensor:
+    """Detail 20: the per-turn rewards (B, K) of episode rollouts, K their most turns (0 where a turn has no reward
+    or a row fewer turns), in the order `advantages.turn_rewards_with_kl` reads them: the runs of sampled tokens
+    of each row's completion mask. Each row's layout (turn k's sampled tokens, then its environment tokens) is
+    checked against the episode's token counts first; a non-finite reward (final or per turn) is one TrainingError
+    line naming the environment."""
+    turns = [r.extras["episode"]["turns"] for r in rollouts]
+    out = torch.zeros(len(rollouts), max(len(ts) for ts in turns))  # (B, K)
+    for i, (r, ts) in enumerate(zip(rollouts, turns)):
+        layout = [m for t in ts for m in [1] * t["sampled_tokens"] + [0] * t["env_tokens"]]
+        if layout != [int(m) for m in r.completion_mask] or any(t["env_tokens"] < 1 for t in ts[:-1]) \
+                or any(t["sampled_tokens"] < 1 for t in ts):  # the multi-turn engine's contract: our bug
+            raise RuntimeError(f"episode rollout {i}: completion_mask does not match its turns' token counts "
+                               f"{[(t['sampled_tokens'], t['env_tokens']) for t in ts]}")
+        for k, t in enumerate(ts):
+            if t["reward"] is not None:
+                out[i, k] = float(t["reward"])
+    for what, x in (("reward", [float(r.reward) for r in rollouts]), ("turn_reward", out.flatten().tolist())):
+        if not all(math.isfinite(v) for v in x):
+            raise loop.TrainingError(f"environment {env_name!r}: {what} returned a non-finite value "
+                                     f"({next(v for v in x if not math.isfinite(v))}); fix the environment (nothing "
+                                     "of this iteration was trained)")
+    return out
 
 
 def update(run: PPORun, batch: RolloutBatch, it: int) -> dict[str, float]:
@@ -453,7 +548,9 @@ def iteration_metrics(batch: RolloutBatch, raw: torch.Tensor, mean_kl: float, kl
             "rollout/kl": mean_kl, "rollout/kl_penalty": float(masked_sum(adv["kl"], cm, -1).mean()),
             "kl_coef": kl_coef, "rollout/length": float(cm.sum(-1).float().mean()),
             "rollout/no_eos": float((~batch.ended).float().mean()), "rollout/logprob_gap": batch.logprob_gap,
-            **batch.mismatch, "rollout/returns": float(masked_mean(adv["returns"], cm))}
+            **batch.mismatch, "rollout/returns": float(masked_mean(adv["returns"], cm)),
+            **({} if batch.turn_rewards is None else  # detail 20: the turns' rewards summed, per episode
+               {"rollout/turn_rewards": float(batch.turn_rewards.sum(-1).mean())})}
 
 
 # ----------------------------------------------------------------------------- models
@@ -547,13 +644,16 @@ def shape_scores(raw: torch.Tensor, ended: torch.Tensor, cfg: PPOConfig, norm: d
 
 @torch.no_grad()
 def advantages_and_returns(cfg: PPOConfig, scores: torch.Tensor, logps: torch.Tensor, ref_logps: torch.Tensor,
-                           values: torch.Tensor, completion_mask: torch.Tensor, kl_coef: float
-                           ) -> dict[str, torch.Tensor]:
-    """Details 4, 6, 7, 8: per-token KL penalty, rewards, GAE, whitening. All (B, T), 0 outside the mask."""
+                           values: torch.Tensor, completion_mask: torch.Tensor, kl_coef: float,
+                           turn_rewards: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Details 4, 6, 7, 8: per-token KL penalty, rewards, GAE, whitening. All (B, T), 0 outside the mask. Detail 20:
+    `completion_mask` selects the sampled tokens of multi-turn trajectories (environment tokens are skipped by GAE
+    and whitening) and `turn_rewards` (B, K) adds each turn's reward at its last sampled token."""
     cm = completion_mask.bool()
     zero = torch.zeros_like(logps)
     kl = torch.where(cm, kl_penalty(logps, ref_logps, cfg.kl_estimator), zero)  # (B, T)
-    rewards = rewards_with_kl(scores, kl, cm, kl_coef=kl_coef)  # (B, T)
+    rewards = rewards_with_kl(scores, kl, cm, kl_coef=kl_coef) if turn_rewards is None else \
+        turn_rewards_with_kl(scores, kl, cm, turn_rewards, kl_coef=kl_coef)  # (B, T)
     if cfg.whiten_rewards:
         rewards = torch.where(cm, masked_whiten(rewards, cm, shift_mean=False), zero)
     adv, returns = gae(rewards, values, cm, gamma=cfg.gamma, lam=cfg.lam)  # (B, T), (B, T)
@@ -590,13 +690,25 @@ class PPOModels:
     value: Any  # a TokenValueModel once prepared
     reference: Any
     tokenizer: Any
-    scorer: Any  # the training reward
+    scorer: Any  # the training reward (None in an environment: it rewards the episodes)
     proxy: Any  # the reward model as the evaluation's proxy scorer (main process), or None
+    env: Any = None  # the environment (detail 20), or None
+    runner: Any = None  # its ToolRunner
 
 
-def load_inputs(res: Resolved, cfg: PPOConfig, ensure) -> tuple[list[dict], list[dict], Path, Path | None]:
+def load_inputs(res: Resolved, cfg: PPOConfig, ensure) -> tuple[list[dict], list[dict], Path, Path | None, Any]:
     """Training prompts, held-out rows with gold meta (none without a gold metric), the SFT and the reward model (built
-    when reward=rm or value_init=reward needs it, else only the proxy curve if it exists); one-line ConfigErrors."""
+    when reward=rm or value_init=reward needs it, else only the proxy curve if it exists), the environment (None
+    without one; with one, both splits' rows as its problems and no reward model); one-line ConfigErrors."""
+    if cfg.env:  # detail 20
+        env = load_env(cfg)
+        train_rows = [env_problem(r) for r in tasks.load_split(res.task, "train")]
+        if len(train_rows) < cfg.rollout_batch_size:
+            raise ConfigError(f"ppo.rollout_batch_size={cfg.rollout_batch_size} is more than the {len(train_rows)} "
+                              "training problems (task.n_train)")
+        eval_rows = [env_problem(r) for r in tasks.load_split(res.task, "eval")][: max(cfg.eval_rows,
+                                                                                         cfg.final_eval_rows)]
+        return train_rows, eval_rows, ensure("sft"), None, env
     task = tasks.get_task(res.task.name)
     if cfg.reward == "gold" and not tasks.has_gold(task):
         raise ConfigError(f"ppo.reward=gold needs a task with a gold metric; {res.task.name!r} has none")
@@ -616,7 +728,17 @@ def load_inputs(res: Resolved, cfg: PPOConfig, ensure) -> tuple[list[dict], list
         rm_dir = ensure("rm")
     elif rm_dir is None and models.is_model_dir(res.stage_dir("rm") / "final"):
         rm_dir = res.stage_dir("rm") / "final"
-    return train_rows, eval_rows, sft_dir, rm_dir
+    return train_rows, eval_rows, sft_dir, rm_dir, None
+
+
+def load_env(cfg: PPOConfig):
+    """Detail 20: the run's environment (`ppo.env` with `env_options`); a bad spec or option is one ConfigError."""
+    from posttrain.verifiers.envs import get_env
+
+    try:
+        return get_env(cfg.env, **cfg.env_options)
+    except (ValueError, ImportError) as e:
+        raise ConfigError(f"ppo.env: {e}") from None
 
 
 def build_models(res: Resolved, cfg: PPOConfig, sft_dir: Path, rm_dir: Path | None, dev, say, main: bool) -> PPOModels:
@@ -629,7 +751,7 @@ def build_models(res: Resolved, cfg: PPOConfig, sft_dir: Path, rm_dir: Path | No
     value = models.maybe_lora(res, value, lambda s: say(s + " (value model)"), "SEQ_CLS")
     for model in (policy, reference, value) if cfg.disable_dropout else ():
         disable_dropout(model)
-    scorer = reward_scorer(cfg.reward, res.task.name, rm_dir, dev)
+    scorer = reward_scorer(cfg.reward, res.task.name, rm_dir, dev) if cfg.reward != "env" else None
     proxy = None if rm_dir is None or not main else (  # the RM's scores of evaluation completions
         scorer if isinstance(scorer, RewardModelScorer) else RewardModelScorer(rm_dir, device=dev))
     return PPOModels(policy, value, reference, tokenizer, scorer, proxy)
@@ -642,30 +764,41 @@ def rollout_and_score(accelerator, nets: PPOModels, cfg: PPOConfig, train_rows: 
     s, "score": s} of this process)."""
     where = sharding.positions(len(keys), accelerator.process_index, accelerator.num_processes)
     rows, t0 = [train_rows[keys[p]] for p in where], time.time()  # rows: none for a process with no share
-    local = generate(accelerator.unwrap_model(nets.policy), nets.tokenizer, [r["prompt"] for r in rows],
-                     SamplingParams(temperature=cfg.temperature, max_new_tokens=cfg.max_new_tokens, seed=seed),
-                     prompt_keys=[keys[p] for p in where]) if rows else []
-    t1 = time.time()
-    raw = [float(x) for x in nets.scorer.score([r["prompt"] for r in rows], [ro.text for ro in local],
-                                            [r.get("meta") for r in rows]).rewards] if rows else []
+    params = SamplingParams(temperature=cfg.temperature, max_new_tokens=cfg.max_new_tokens, seed=seed)
+    policy, prompt_keys = accelerator.unwrap_model(nets.policy), [keys[p] for p in where]
+    if nets.env is not None:  # detail 20: episodes (the environment's limits, not max_new_tokens), its final reward
+        local = generate_episodes(policy, nets.tokenizer, nets.env, rows, params, prompt_keys=prompt_keys,
+                                  runner=nets.runner) if rows else []
+        t1 = time.time()
+        raw = [float(ro.reward) for ro in local]
+    else:
+        local = generate(policy, nets.tokenizer, [r["prompt"] for r in rows], params,
+                         prompt_keys=prompt_keys) if rows else []
+        t1 = time.time()
+        raw = [float(x) for x in nets.scorer.score([r["prompt"] for r in rows], [ro.text for ro in local],
+                                                [r.get("meta") for r in rows]).rewards] if rows else []
     return (sharding.gather_rows(accelerator, local, where), torch.tensor(sharding.gather_rows(accelerator, raw, where),
             dtype=torch.float32), {"sample": t1 - t0, "score": time.time() - t1})
 
 
 def save_scored_rollouts(rollouts: list, raw: torch.Tensor, scores: torch.Tensor, adv: dict, cm: torch.Tensor,
-                         kl_coef: float, run_dir: Path, step: int) -> list[dict]:
+                         kl_coef: float, run_dir: Path, step: int, turn_rewards: torch.Tensor | None = None
+                         ) -> list[dict]:
     """The iteration's rollouts with what a reader asks of each (`posttrain rollouts RUN_DIR` prints them): the
-    reward it was trained on (the per-token rewards summed: shaped score minus the KL penalty), its parts (raw
-    score, shaped score, the sequence's KL (kl_estimator) and kl_coef times it) and its mean advantage over
-    completion tokens. Returns them as table rows (trackers)."""
+    reward it was trained on (the per-token rewards summed: shaped score, plus the turns' rewards in an environment,
+    minus the KL penalty), its parts (raw score, shaped score, the sequence's KL (kl_estimator) and kl_coef times
+    it, `turns`: the sum of its per-turn rewards) and its mean advantage over completion (sampled) tokens. Episodes
+    keep extras["episode"] (the turns). Returns them as table rows (trackers)."""
     from posttrain.rollout.records import save_step_rollouts
 
     advantage = masked_mean(adv["advantages"], cm, -1).tolist()  # (B,)
     total, kl = masked_sum(adv["rewards"], cm, -1).tolist(), masked_sum(adv["kl"], cm, -1).tolist()  # (B,)
+    turns = turn_rewards.sum(-1).tolist() if turn_rewards is not None else None  # (B,)
     for i, r in enumerate(rollouts):
         r.reward = total[i]
         r.extras.update(advantage=advantage[i], parts={"score_raw": float(raw[i]), "score": float(scores[i]),
-                                                       "kl": kl[i], "kl_penalty": kl_coef * kl[i]})
+                                                       "kl": kl[i], "kl_penalty": kl_coef * kl[i],
+                                                       **({} if turns is None else {"turns": turns[i]})})
     return save_step_rollouts(rollouts, run_dir, step)
 
 
@@ -720,8 +853,11 @@ def value_update_loss(accelerator, value, cfg: PPOConfig, mb: dict, n_local: flo
 
 
 def evaluate(it: int, task_name: str, accelerator, nets: PPOModels, rows: list[dict], baseline: list[str],
-             cfg: PPOConfig, metrics, say) -> None:
-    """`evaluation.policy_eval` against the SFT model's completions `baseline`, logged at `it` (main process)."""
+             cfg: PPOConfig, metrics, say, episodes: HeldOut | None = None) -> None:
+    """`evaluation.policy_eval` against the SFT model's completions `baseline`, logged at `it` (main process); in an
+    environment (detail 20) greedy `episodes` (the last iteration's are `finish`'s comparison with the SFT model)."""
+    if episodes is not None and episodes.n_eval and it != cfg.max_steps:
+        episodes.log_eval(accelerator.unwrap_model(nets.policy), nets.tokenizer, metrics, it, say)
     if rows:
         pol = accelerator.unwrap_model(nets.policy).eval()  # (with LoRA, the reference runs in the policy's mode)
         e = evaluation.policy_eval(task_name, pol, nets.reference, nets.tokenizer, rows[: cfg.eval_rows], baseline,
