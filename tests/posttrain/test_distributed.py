@@ -238,6 +238,46 @@ def test_grpo_in_an_environment_two_processes_match_one_process(tmp_path, tiny_l
 
 
 @pytest.mark.slow
+def test_ppo_in_an_environment_two_processes_match_one_process(tmp_path, tiny_lm):
+    """PPO on multi-turn episodes (ppo.env, detail 20) under 2 processes == 1 process: each process runs its rows'
+    episodes (a row's episode depends only on its key and the iteration's seed), then the rollouts are gathered;
+    the same rewards, turns and environment tokens exactly; the losses, KL and gradient norms within float
+    summation order (stated tolerance 1e-4 relative, as the single-turn PPO test's)."""
+    import importlib.util
+    import shutil
+
+    envs_file = Path(__file__).resolve().parent / "envs_for_tests.py"
+    spec = importlib.util.spec_from_file_location("envs_for_tests", envs_file)
+    envs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(envs)
+    sft = envs.eos_pulled_copy(tiny_lm("tiny-calc", vocab_size=320, max_length=256, split_digits=True, chat=True),
+                               tmp_path / "sft")
+    args = ["--recipe", "tiny-calc", "run.threads=1", f"env={envs_file}:Turns", "reward=env", "value_init=policy",
+            "reward_norm=none", "rollout_batch_size=8", "minibatch_size=4", "ppo_epochs=1", "max_steps=2",
+            "lr=1e-3", "value_lr=1e-3", "eval_every=0", "eval_rows=0", "final_eval_rows=0", "save_every=0",
+            "task.n_train=32", "task.n_eval=8"]
+    runs = {}
+    for name, launch in (("one", []), ("two", ["-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes",
+                                              "2", "--num_machines", "1", "--mixed_precision", "no",
+                                              "--dynamo_backend", "no"])):
+        out = tmp_path / name
+        shutil.copytree(sft, out / "tiny-calc" / "sft" / "final")
+        text = _run([sys.executable, *launch, "-m", "posttrain", "ppo", *args, f"run.output_dir={out}"], tmp_path)
+        assert f"{1 if name == 'one' else 2} process(es)" in text
+        rows = [json.loads(l) for l in (out / "tiny-calc" / "ppo" / "metrics.jsonl").read_text().splitlines()]
+        runs[name] = [r for r in rows if "rollout/score_raw" in r]
+    one, two = runs["one"], runs["two"]
+    assert [r["step"] for r in one] == [r["step"] for r in two] == [1, 2]
+    assert any(r["env/env_tokens"] > 0 for r in one)
+    for a, b in zip(one, two):
+        for k in ("rollout/score_raw", "rollout/length", "env/turns", "env/tool_calls", "env/env_tokens",
+                  "env/sampled_tokens"):
+            assert a[k] == b[k], (k, a[k], b[k])
+        for k in ("rollout/kl", "rollout/returns", "policy/loss", "policy/grad_norm", "value/loss", "value/grad_norm"):
+            assert a[k] == pytest.approx(b[k], rel=1e-4, abs=1e-6), (k, a[k], b[k])
+
+
+@pytest.mark.slow
 def test_distill_two_processes_match_one_process(tmp_path, tiny_lm):
     """On-policy distillation under 2 processes == 1 process at the same global batch and seed: P = 3 prompts
     (split 2 + 1) x K = 2 samples, the groups gathered, the step's token mean split over the processes by
