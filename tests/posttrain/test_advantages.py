@@ -89,7 +89,7 @@ def test_rewards_with_kl_rejects_empty_completion():
         rewards_with_kl(torch.zeros(2), torch.zeros(2, 3), torch.tensor([[1, 1, 0], [0, 0, 0]]), kl_coef=0.1)
 
 
-# ----------------------------------------------------------------------------- multi-turn: per-turn rewards, GAE over turns
+# ----------------------------------------------------------------------------- multi-turn: turn rewards, GAE
 # Row 0: a prompt column, turn 1 (columns 1-2), an environment token (3), turn 2 (4-5), padding (6).
 # Row 1: one turn (columns 1-3), then padding. NaN wherever a column must never be read.
 TURN_MASK = torch.tensor([[0, 1, 1, 0, 1, 1, 0], [0, 1, 1, 1, 0, 0, 0]], dtype=torch.bool)
