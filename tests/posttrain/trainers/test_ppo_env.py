@@ -131,7 +131,7 @@ def test_per_turn_rewards_move_the_advantages_of_their_turns_as_gae_says(chat_sf
     from posttrain.verifiers.envs.calc import CalcEnv
 
     model, tok = load_model(chat_sft), load_tokenizer(chat_sft)
-    rows = [env_problem(p) for p in CalcEnv.problems(8)]
+    rows = [env_problem(p) for p in CalcEnv.problems(24)]
     rollouts = generate_episodes(model, tok, PaidTurns(), rows, SamplingParams(temperature=1.0, seed=5))
     turns = ppo.episode_turn_rewards(rollouts, "paid-turns")  # (B, K)
     assert (turns > 0).any(), "no paid turn: the test needs a multi-turn episode"
