@@ -5,7 +5,7 @@
     posttrain recipes cp NAME PATH                      a copy to edit, runnable with --recipe PATH
     posttrain validate --recipe NAME|PATH [stage.k=v]   every stage resolved and range-checked, no model loaded
     posttrain rollouts RUN_DIR [--step N] [--worst K]   a GRPO / PPO / online DPO run's saved rollouts, readably
-    posttrain envs                                      multi-turn environments with tools (grpo.env)
+    posttrain envs                                      multi-turn environments with tools (grpo/ppo/distill.env)
     posttrain plot RUN_DIR [--out DIR]                  PNGs of a stage's metrics.jsonl (RUN_DIR/plots/)
     posttrain sft  --recipe tiny-summarize [k=v ...]     run a stage (builds what it needs first)
     posttrain eval --recipe tiny-summarize [model=PATH] [reference=PATH]
@@ -311,14 +311,14 @@ def envs_command(rest: list[str]) -> int:
     `grpo.env=path/to/file.py:Name` loads one from a file."""
     from posttrain.verifiers.envs import list_envs
 
-    p = argparse.ArgumentParser(prog="posttrain envs", description="list the multi-turn environments (grpo.env)")
+    p = argparse.ArgumentParser(prog="posttrain envs", description="list the multi-turn environments (grpo.env, ppo.env, distill.env)")
     p.parse_args(rest)
     rows = list_envs()
     width, owidth = max(len(r[0]) for r in rows), max(len(r[2]) for r in rows)
     print(f"{'name':{width}s}  {'origin':{owidth}s}  description")
     for name, desc, origin in rows:
         print(f"{name:{width}s}  {origin:{owidth}s}  {desc}")
-    print("also: grpo.env=path/to/file.py:Name (an Environment subclass in a file)")
+    print("also: env=path/to/file.py:Name in grpo, ppo or distill (an Environment subclass in a file)")
     return 0
 
 
