@@ -115,6 +115,19 @@ def test_calc_reward_audit(answer, finish, expected):
     assert CalcEnv().score(problem, answer, finish)[0] == expected
 
 
+def test_calc_digit_credit_scores_near_misses_below_one_and_every_hack_zero():
+    problem = {"answer": "201954"}
+    env = CalcEnv(digit_credit=0.5)
+    assert env.score(problem, "201954")[0] == 1.0
+    assert env.score(problem, "201955") == (0.5 * 5 / 6, "wrong (digit credit)")  # 5 of 6 digits in place
+    assert env.score(problem, "2019540")[0] == 0.0  # another length: no credit
+    for answer, finish, expected in AUDIT:  # the audited hacks still score what they scored
+        if expected == 0.0 and answer != "201955":
+            assert env.score(problem, answer, finish)[0] == 0.0, answer
+    with pytest.raises(ValueError, match="digit_credit"):
+        CalcEnv(digit_credit=1.0)
+
+
 def test_last_integer_reads_digit_groups():
     assert last_integer("it is 201,954.") == (201954, 1)
     assert last_integer("3 and 4") == (4, 2)

@@ -13,6 +13,9 @@ and the episode ended with an answer turn; else 0.0. Known hacks and why they sc
 - copying a tool error ("error: unexpected ')' at character 7"): an answer that contains "error:" scores 0;
 - ending on a tool call (the turn limit hit while calling): the episode did not end with an answer;
 - an empty answer.
+`digit_credit` (an env option, default 0): a wrong answer of the right length scores `digit_credit` times the
+share of its digits in place (always below 1, so accuracy, the share of rewards of 1, stays exact); a denser signal
+for GRPO on copying a long result (RESULTS.md, tiny-calc: it did not lift accuracy there).
 Per-turn reward: none (`turn_reward` returns None); `reward_parts` in the metrics says which rule decided.
 """
 from __future__ import annotations
@@ -53,8 +56,11 @@ class CalcEnv(Environment):
     tools = (calculator,)
     instructions = "Answer with the number only."
 
-    def __init__(self, max_numbers: int = 3, **limits: Any):
+    def __init__(self, max_numbers: int = 3, digit_credit: float = 0.0, **limits: Any):
+        if not 0.0 <= digit_credit < 1.0:
+            raise ValueError(f"calc digit_credit must be in [0, 1), got {digit_credit!r}")
         self.max_numbers = max_numbers
+        self.digit_credit = digit_credit
         self.limits = Limits(**{"max_turns": 3, "max_turn_tokens": 48, "max_total_tokens": 192, **limits})
 
     @staticmethod
@@ -90,7 +96,14 @@ class CalcEnv(Environment):
             return 0.0, "no integer"
         if count > self.max_numbers:
             return 0.0, f"more than {self.max_numbers} integers"
-        return (1.0, "correct") if str(value) == str(problem["answer"]).strip() else (0.0, "wrong")
+        want = str(problem["answer"]).strip()
+        if str(value) == want:
+            return 1.0, "correct"
+        got = str(value)
+        if self.digit_credit and len(got) == len(want):
+            same = sum(a == b for a, b in zip(got, want))
+            return self.digit_credit * same / len(want), "wrong (digit credit)"
+        return 0.0, "wrong"
 
     def reward(self, episode: Episode) -> float:
         reward, why = self.score(episode.problem, episode.final_text, episode.finish)
