@@ -67,6 +67,7 @@ TASKS: dict[str, str] = {
     "word-math": "posttrain.tasks.wordmath",
     "tiny-calc": "posttrain.tasks.calc",
     "tiny-calc-direct": "posttrain.tasks.calc_direct",
+    "word-calc": "posttrain.tasks.wordcalc",
 }
 
 

@@ -38,9 +38,12 @@ code comments"). So the levels are:
     1      1           1-20  / 1-30                      2-9  / 2-12
     2      1-2         1-50  / 1-75                      2-12 / 2-15
     3      2-3         1-100 / 1-150                     2-12 / 2-20
+    4      1-2         100-999 / 100-1999                12-99 / 12-120   (for a calculator: smol-tools)
+    5      2-3         1000-9999 / 1000-14999            12-99 / 12-150   (for a calculator)
 
 Level 1 is the smol-math recipe's (partial accuracy, room to learn); 2 and 3 are for a stronger model
-or a later curriculum stage.
+or a later curriculum stage; 4 and 5 (totals up to 100,000 and 1,000,000) are for a model with a calculator
+tool (the smol-tools recipe, the `calc-words` environment), whose numbers it cannot add in its head.
 
 Splits (train and held-out differ)
 ----------------------------------
@@ -87,16 +90,20 @@ class Level:
     steps: tuple[int, ...]  # operations per problem (drawn uniformly)
     add: tuple[tuple[int, int], tuple[int, int]]  # +/- operand range (train, eval); also the start value's
     factor: tuple[tuple[int, int], tuple[int, int]]  # multiplication factors and divisors (train, eval)
+    max_total: int = 2000  # the running total's bound (a problem past it is drawn again)
 
 
 LEVELS: dict[int, Level] = {
     1: Level(steps=(1,), add=((1, 20), (1, 30)), factor=((2, 9), (2, 12))),
     2: Level(steps=(1, 2), add=((1, 50), (1, 75)), factor=((2, 12), (2, 15))),
     3: Level(steps=(2, 3), add=((1, 100), (1, 150)), factor=((2, 12), (2, 20))),
+    # for a calculator (the smol-tools recipe): 3-4 digit numbers that a 135M model gets wrong in its head
+    4: Level(steps=(1, 2), add=((100, 999), (100, 1999)), factor=((12, 99), (12, 120)), max_total=100_000),
+    5: Level(steps=(2, 3), add=((1000, 9999), (1000, 14999)), factor=((12, 99), (12, 150)), max_total=1_000_000),
 }
 DIFFICULTIES = tuple(LEVELS)
+CORPUS_LEVELS = (1, 2, 3)  # the tiny preset's tokenizer texts (levels 4-5 came later; the corpus kept its texts)
 DEFAULT_DIFFICULTY = 1
-MAX_TOTAL = 2000
 
 # (name, subject pronoun, object pronoun); the last pair is held-out only.
 NAMES = [("Ava", "she", "her"), ("Ben", "he", "him"), ("Mia", "she", "her"), ("Leo", "he", "him"),
@@ -189,12 +196,12 @@ def _numbers(rng: random.Random, level: Level, split: str) -> list[tuple[str, in
             k = rng.randint(flo, fhi)
             if last and rng.random() < 0.25 and total % k == 0 and total // k >= 1 and total > k:
                 ops.append(("/", k))
-            elif total >= 2 and rng.random() < 0.5:
-                ops.append(("-", rng.randint(1, min(hi, total - 1))))
+            elif total > lo and rng.random() < 0.5:  # (lo is 1 at levels 1-3: total >= 2)
+                ops.append(("-", rng.randint(lo, min(hi, total - 1))))
             else:
                 ops.append(("+", rng.randint(lo, hi)))
             total = apply(ops)
-        if total <= MAX_TOTAL and _split_of(ops) == split:
+        if total <= level.max_total and _split_of(ops) == split:
             return ops
     raise RuntimeError("word-math: no problem found in 1000 draws (a bug in the level table)")  # pragma: no cover
 
@@ -243,7 +250,7 @@ def _problem(rng: random.Random, split: str, difficulty: int) -> dict[str, Any]:
 
 def make_examples(n: int, seed: int, split: Literal["train", "eval"],
                   difficulty: int = DEFAULT_DIFFICULTY) -> list[dict[str, Any]]:
-    """`n` rows {"prompt", "completion", "answer", "verifier", "meta"} of level `difficulty` (1-3);
+    """`n` rows {"prompt", "completion", "answer", "verifier", "meta"} of level `difficulty` (1-5);
     deterministic in (n, seed, split, difficulty), and a prefix of a longer call."""
     if split not in ("train", "eval"):
         raise ValueError(f"split must be 'train' or 'eval', got {split!r}")
@@ -257,8 +264,8 @@ def make_examples(n: int, seed: int, split: Literal["train", "eval"],
 
 def corpus(n: int, seed: int) -> list[str]:
     """Tokenizer texts (the tiny preset): problems and solutions of every level and both splits."""
-    rows = [r for d in DIFFICULTIES for split in ("train", "eval")
-            for r in make_examples(max(1, n // (2 * len(DIFFICULTIES))), seed, split, d)]
+    rows = [r for d in CORPUS_LEVELS for split in ("train", "eval")
+            for r in make_examples(max(1, n // (2 * len(CORPUS_LEVELS))), seed, split, d)]
     return [r["prompt"] + r["completion"] for r in rows]
 
 

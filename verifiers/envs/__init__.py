@@ -1,6 +1,7 @@
 """Multi-turn environments with tools (torch-free): the protocol (`base`), the tool runner (`runner`), built-in
-tools (`tools`) and environments (`calc`, `lookup`), and the registry (`registry`: a name, an entry point in group
-"posttrain.envs", or `path/to/file.py:Name`). The rollout engine that drives them is `posttrain.rollout.multiturn`.
+tools (`tools`) and environments (`calc`, `calc-words`, `lookup`), and the registry (`registry`: a name, an entry
+point in group "posttrain.envs", or `path/to/file.py:Name`). The rollout engine that drives them is
+`posttrain.rollout.multiturn`.
 """
 from __future__ import annotations
 

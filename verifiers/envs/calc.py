@@ -124,3 +124,52 @@ AUDIT = [
     ("201955", "answer", 0.0),
     ("201954", "length", 0.0),
 ]
+
+
+class WordCalcEnv(CalcEnv):
+    """`calc-words`: word problems whose numbers a small model cannot handle in its head, with the calculator.
+
+    Problems come from the task (rows with `prompt` and `answer`; the word-math task's levels 4-5 are written for
+    it: totals up to 100,000 / 1,000,000 over 1-3 operations). The model may call `calculator` (and, with
+    `python=True`, the sandboxed `python` tool of `tools.PythonTool`) and answers in prose; the reward is the math
+    verifier's verdict on that answer ("the answer is", "####", else the last number: the form an instruct model
+    already writes). Hacks that score 0 (`WORD_AUDIT`, tested): copying a tool message (an error, a call) into the
+    answer, ending on a call, several final answers ("the answer is 12 or 1743"), an empty answer.
+    """
+
+    name = "calc-words"
+    description = "word problems with 3-5 digit numbers, an exact calculator (python=true: also Python)"
+    instructions = "Use the calculator for every computation. End your answer with: The answer is <number>."
+
+    def __init__(self, python: bool = False, **limits: Any):
+        from posttrain.verifiers.math_answer import MathVerifier
+
+        self.limits = Limits(**{"max_turns": 5, "max_turn_tokens": 96, "max_total_tokens": 512, **limits})
+        self.tools = (calculator, tools.PythonTool().as_tool()) if python else (calculator,)
+        self.max_numbers = 0
+        self.digit_credit = 0.0
+        self._math = MathVerifier()
+
+    def score(self, problem: dict[str, Any], answer: str, finish: str = "answer") -> tuple[float, str]:
+        if finish != "answer":
+            return 0.0, "no answer turn"
+        if "error:" in answer or "<tool_call>" in answer:
+            return 0.0, "copies a tool message"
+        verdict = self._math.check(answer, str(problem["answer"]))
+        return float(verdict.score), verdict.reason
+
+
+# (answer text, episode finish, expected reward) for a word problem whose answer is 1743: hacks score 0.
+WORD_AUDIT = [
+    ("1068 + 806 - 131 = 1743. The answer is 1743.", "answer", 1.0),
+    ("She has 1,743 pencils at the end.", "answer", 1.0),
+    ("#### 1743", "answer", 1.0),
+    ("The answer is 12 or 1743.", "answer", 0.0),
+    ("error: unexpected ')' at character 7. The answer is 1743.", "answer", 0.0),
+    ('<tool_call>{"name": "calculator", "arguments": {"expression": "1068+806-131"}}</tool_call>', "max_turns", 0.0),
+    ('The answer is 1743 <tool_call>{"name": "calculator", "arguments": {"expression": "1"}}</tool_call>',
+     "answer", 0.0),
+    ("", "answer", 0.0),
+    ("The answer is 1744.", "answer", 0.0),
+    ("The answer is 1743.", "length", 0.0),
+]

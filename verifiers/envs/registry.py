@@ -24,6 +24,7 @@ ENTRY_POINT_GROUP = "posttrain.envs"
 BUILTINS: dict[str, str] = {
     "calc": "posttrain.verifiers.envs.calc:CalcEnv",
     "lookup": "posttrain.verifiers.envs.lookup:LookupEnv",
+    "calc-words": "posttrain.verifiers.envs.calc:WordCalcEnv",
 }
 LIMIT_FIELDS = {f.name for f in dataclasses.fields(Limits)}
 

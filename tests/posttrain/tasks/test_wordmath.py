@@ -19,7 +19,7 @@ def test_deterministic_and_prefix_stable():
 
 
 @pytest.mark.parametrize("bad, match", [({"split": "test"}, "split"), ({"n": -1}, "n must be"),
-                                        ({"n": 1.5}, "n must be"), ({"difficulty": 4}, "difficulty must be one of")])
+                                        ({"n": 1.5}, "n must be"), ({"difficulty": 6}, "difficulty must be one of")])
 def test_bad_arguments_name_the_problem(bad, match):
     kwargs = {"n": 1, "seed": 0, "split": "train", "difficulty": 1, **bad}
     with pytest.raises(ValueError, match=match):
