@@ -42,19 +42,22 @@ def _bad_spelling(expression: str, k: int) -> str:
     return expression.replace("*", [" x ", "×", " times "][k % 3])
 
 
+def refused_call(bad: str) -> list[dict[str, Any]]:
+    """A calculator call with an expression its grammar refuses, and the error message it gets back."""
+    try:
+        calculator(bad)
+    except ValueError as e:
+        return [{"role": "assistant", "content": format_tool_call("calculator", {"expression": bad})},
+                {"role": "tool", "content": f"error: ValueError: {e}"}]
+    raise AssertionError(f"the calculator accepted {bad!r}")
+
+
 def demonstration(problem: dict[str, Any], recover: bool, k: int = 0) -> list[dict[str, Any]]:
     """The conversation of one problem solved with the tool (after a refused call first when `recover`)."""
     env = CalcEnv()
     messages = env.reset(problem)
     if recover:
-        bad = _bad_spelling(problem["expression"], k)
-        try:
-            calculator(bad)
-            raise AssertionError(f"the calculator accepted {bad!r}")
-        except ValueError as e:
-            error = f"error: ValueError: {e}"
-        messages += [{"role": "assistant", "content": format_tool_call("calculator", {"expression": bad})},
-                     {"role": "tool", "content": error}]
+        messages += refused_call(_bad_spelling(problem["expression"], k))
     messages += [{"role": "assistant", "content": format_tool_call("calculator", {"expression": problem["expression"]})},
                  {"role": "tool", "content": calculator(problem["expression"])},
                  {"role": "assistant", "content": problem["answer"]}]

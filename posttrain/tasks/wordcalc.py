@@ -18,6 +18,7 @@ from __future__ import annotations
 from typing import Any, Literal, Sequence
 
 from posttrain.tasks import wordmath
+from posttrain.tasks.calc import refused_call
 from posttrain.verifiers.envs.base import format_tool_call
 from posttrain.verifiers.envs.calc import WordCalcEnv, calculator
 
@@ -63,14 +64,7 @@ def demonstration(problem: dict[str, Any], recover: bool, k: int = 0) -> list[di
     if result != str(problem["answer"]):
         raise AssertionError(f"word-calc: {expr} = {result}, not the row's answer {problem['answer']}")
     if recover:
-        bad = _bad_spelling(expr, k)
-        try:
-            calculator(bad)
-            raise AssertionError(f"the calculator accepted {bad!r}")
-        except ValueError as e:
-            error = f"error: ValueError: {e}"
-        messages += [{"role": "assistant", "content": format_tool_call("calculator", {"expression": bad})},
-                     {"role": "tool", "content": error}]
+        messages += refused_call(_bad_spelling(expr, k))
     shown = _spaced(expr)
     messages += [{"role": "assistant", "content": format_tool_call("calculator", {"expression": expr})},
                  {"role": "tool", "content": result},

@@ -14,17 +14,7 @@ from posttrain.cli import main
 ENVS = Path(__file__).resolve().parent.parent / "envs_for_tests.py"
 
 
-@pytest.fixture(scope="module")
-def chat_sft(tiny_lm, tmp_path_factory):
-    """A random tiny model with a chat tokenizer trained on tiny-calc text, its eos made likely enough that some
-    turns end early (envs_for_tests.eos_pulled_copy): the 'SFT model' GRPO starts from."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("envs_for_tests", ENVS)
-    envs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(envs)
-    src = tiny_lm("tiny-calc", vocab_size=320, max_length=256, split_digits=True, chat=True)
-    return envs.eos_pulled_copy(src, tmp_path_factory.mktemp("chat-sft") / "model")
+# chat_sft: tests/posttrain/trainers/conftest.py
 
 
 def _args(sft_model, out: Path, *extra: str) -> list[str]:

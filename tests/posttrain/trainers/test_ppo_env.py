@@ -14,7 +14,6 @@ from posttrain.verifiers.envs import Environment, Limits, ToolCall
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
-ENVS = Path(__file__).resolve().parent.parent / "envs_for_tests.py"
 HERE = Path(__file__).resolve()
 
 
@@ -59,17 +58,7 @@ class PaidTurns(QuickTurns):
         return 0.5 if turn.results else None
 
 
-@pytest.fixture(scope="module")
-def chat_sft(tiny_lm, tmp_path_factory):
-    """The 'SFT model' of tests/posttrain/trainers/test_grpo_env.py: a random tiny chat model whose eos is likely
-    enough that some turns (not all) end early (envs_for_tests.eos_pulled_copy)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("envs_for_tests", ENVS)
-    envs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(envs)
-    src = tiny_lm("tiny-calc", vocab_size=320, max_length=256, split_digits=True, chat=True)
-    return envs.eos_pulled_copy(src, tmp_path_factory.mktemp("chat-sft") / "model")
+# chat_sft: tests/posttrain/trainers/conftest.py
 
 
 def _args(sft_model, out: Path, *extra: str) -> list[str]:
