@@ -27,6 +27,34 @@ def _run(cmd: list[str], cwd: Path) -> str:
     return r.stdout
 
 
+ENVS_FILE = Path(__file__).resolve().parent / "envs_for_tests.py"
+
+
+def _env_runs(tmp_path: Path, tiny_lm, stage: str, args: list[str], key: str) -> tuple[list[dict], list[dict]]:
+    """The metrics rows holding `key` of `posttrain <stage> *args` on tiny-calc episodes, run as 1 and as 2
+    processes, both from one random chat 'SFT model' whose eos is likely enough that some turns end early
+    (envs_for_tests.eos_pulled_copy)."""
+    import importlib.util
+    import shutil
+
+    spec = importlib.util.spec_from_file_location("envs_for_tests", ENVS_FILE)
+    envs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(envs)
+    sft = envs.eos_pulled_copy(tiny_lm("tiny-calc", vocab_size=320, max_length=256, split_digits=True, chat=True),
+                               tmp_path / "sft")
+    runs = {}
+    for name, launch in (("one", []), ("two", ["-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes",
+                                              "2", "--num_machines", "1", "--mixed_precision", "no",
+                                              "--dynamo_backend", "no"])):
+        out = tmp_path / name
+        shutil.copytree(sft, out / "tiny-calc" / "sft" / "final")
+        text = _run([sys.executable, *launch, "-m", "posttrain", stage, *args, f"run.output_dir={out}"], tmp_path)
+        assert f"{1 if name == 'one' else 2} process(es)" in text
+        rows = [json.loads(l) for l in (out / "tiny-calc" / stage / "metrics.jsonl").read_text().splitlines()]
+        runs[name] = [r for r in rows if key in r]
+    return runs["one"], runs["two"]
+
+
 def _losses(run_dir: Path) -> list[float]:
     rows = [json.loads(l) for l in (run_dir / "metrics.jsonl").read_text().splitlines()]
     return [r["loss"] for r in rows if "loss" in r]
@@ -206,29 +234,10 @@ def test_grpo_in_an_environment_two_processes_match_one_process(tmp_path, tiny_l
     """Multi-turn episodes (grpo.env) under 2 processes == 1 process: each process runs its groups' episodes (a row's
     episode depends only on its key and sample index), then the groups are gathered; the same rewards, turns and
     environment tokens exactly, the losses within float summation order."""
-    import importlib.util
-    import shutil
-
-    envs_file = Path(__file__).resolve().parent / "envs_for_tests.py"
-    spec = importlib.util.spec_from_file_location("envs_for_tests", envs_file)
-    envs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(envs)
-    sft = envs.eos_pulled_copy(tiny_lm("tiny-calc", vocab_size=320, max_length=256, split_digits=True, chat=True),
-                               tmp_path / "sft")
-    args = ["--recipe", "tiny-calc", "run.threads=1", f"env={envs_file}:Turns", "prompts_per_step=2", "group_size=4",
+    args = ["--recipe", "tiny-calc", "run.threads=1", f"env={ENVS_FILE}:Turns", "prompts_per_step=2", "group_size=4",
             "max_steps=2", "zero_variance=keep", "lr=1e-3", "eval_every=0", "eval_rows=4", "final_eval_rows=4",
             "save_every=0", "task.n_train=32", "task.n_eval=8"]
-    runs = {}
-    for name, launch in (("one", []), ("two", ["-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes",
-                                              "2", "--num_machines", "1", "--mixed_precision", "no",
-                                              "--dynamo_backend", "no"])):
-        out = tmp_path / name
-        shutil.copytree(sft, out / "tiny-calc" / "sft" / "final")
-        text = _run([sys.executable, *launch, "-m", "posttrain", "grpo", *args, f"run.output_dir={out}"], tmp_path)
-        assert f"{1 if name == 'one' else 2} process(es)" in text
-        rows = [json.loads(l) for l in (out / "tiny-calc" / "grpo" / "metrics.jsonl").read_text().splitlines()]
-        runs[name] = [r for r in rows if "reward/mean" in r]
-    one, two = runs["one"], runs["two"]
+    one, two = _env_runs(tmp_path, tiny_lm, "grpo", args, "reward/mean")
     assert [r["step"] for r in one] == [r["step"] for r in two] == [1, 2]
     for a, b in zip(one, two):
         for k in ("reward/mean", "env/turns", "env/tool_calls", "env/env_tokens", "env/sampled_tokens"):
@@ -243,30 +252,11 @@ def test_ppo_in_an_environment_two_processes_match_one_process(tmp_path, tiny_lm
     episodes (a row's episode depends only on its key and the iteration's seed), then the rollouts are gathered;
     the same rewards, turns and environment tokens exactly; the losses, KL and gradient norms within float
     summation order (stated tolerance 1e-4 relative, as the single-turn PPO test's)."""
-    import importlib.util
-    import shutil
-
-    envs_file = Path(__file__).resolve().parent / "envs_for_tests.py"
-    spec = importlib.util.spec_from_file_location("envs_for_tests", envs_file)
-    envs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(envs)
-    sft = envs.eos_pulled_copy(tiny_lm("tiny-calc", vocab_size=320, max_length=256, split_digits=True, chat=True),
-                               tmp_path / "sft")
-    args = ["--recipe", "tiny-calc", "run.threads=1", f"env={envs_file}:Turns", "reward=env", "value_init=policy",
+    args = ["--recipe", "tiny-calc", "run.threads=1", f"env={ENVS_FILE}:Turns", "reward=env", "value_init=policy",
             "reward_norm=none", "rollout_batch_size=8", "minibatch_size=4", "ppo_epochs=1", "max_steps=2",
             "lr=1e-3", "value_lr=1e-3", "eval_every=0", "eval_rows=0", "final_eval_rows=0", "save_every=0",
             "task.n_train=32", "task.n_eval=8"]
-    runs = {}
-    for name, launch in (("one", []), ("two", ["-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes",
-                                              "2", "--num_machines", "1", "--mixed_precision", "no",
-                                              "--dynamo_backend", "no"])):
-        out = tmp_path / name
-        shutil.copytree(sft, out / "tiny-calc" / "sft" / "final")
-        text = _run([sys.executable, *launch, "-m", "posttrain", "ppo", *args, f"run.output_dir={out}"], tmp_path)
-        assert f"{1 if name == 'one' else 2} process(es)" in text
-        rows = [json.loads(l) for l in (out / "tiny-calc" / "ppo" / "metrics.jsonl").read_text().splitlines()]
-        runs[name] = [r for r in rows if "rollout/score_raw" in r]
-    one, two = runs["one"], runs["two"]
+    one, two = _env_runs(tmp_path, tiny_lm, "ppo", args, "rollout/score_raw")
     assert [r["step"] for r in one] == [r["step"] for r in two] == [1, 2]
     assert any(r["env/env_tokens"] > 0 for r in one)
     for a, b in zip(one, two):

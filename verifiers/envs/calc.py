@@ -126,7 +126,7 @@ AUDIT = [
 ]
 
 
-class WordCalcEnv(CalcEnv):
+class WordCalcEnv(Environment):
     """`calc-words`: word problems whose numbers a small model cannot handle in its head, with the calculator.
 
     Problems come from the task (rows with `prompt` and `answer`; the word-math task's levels 4-5 are written for
@@ -146,8 +146,6 @@ class WordCalcEnv(CalcEnv):
 
         self.limits = Limits(**{"max_turns": 5, "max_turn_tokens": 96, "max_total_tokens": 512, **limits})
         self.tools = (calculator, tools.PythonTool().as_tool()) if python else (calculator,)
-        self.max_numbers = 0
-        self.digit_credit = 0.0
         self._math = MathVerifier()
 
     def score(self, problem: dict[str, Any], answer: str, finish: str = "answer") -> tuple[float, str]:
@@ -157,6 +155,8 @@ class WordCalcEnv(CalcEnv):
             return 0.0, "copies a tool message"
         verdict = self._math.check(answer, str(problem["answer"]))
         return float(verdict.score), verdict.reason
+
+    reward = CalcEnv.reward  # the same rule-recording reward over this class's `score`
 
 
 # (answer text, episode finish, expected reward) for a word problem whose answer is 1743: hacks score 0.
