@@ -46,7 +46,8 @@ def test_script_imports_without_running(path):
         assert callable(getattr(module, "main", None)), f"{path.name} has no main()"
 
 
-@pytest.mark.parametrize("name", ["bench.py", "bench_verifiers.py", "reproduce_e6.py", "reproduce_e7.py"])
+@pytest.mark.parametrize("name", ["bench.py", "bench_verifiers.py", "reproduce_e6.py", "reproduce_e7.py",
+                                  "reproduce_tools.py"])
 def test_script_help(name):
     out = subprocess.run([sys.executable, str(SCRIPTS / name), "--help"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
@@ -336,7 +337,7 @@ def test_make_chat_data_rewrites_the_shipped_files_byte_for_byte(tmp_path):
         assert (tmp_path / name).read_bytes() == (shipped / name).read_bytes(), name
 
 
-@pytest.mark.parametrize("script", ["reproduce_e6.py", "reproduce_e7.py"])
+@pytest.mark.parametrize("script", ["reproduce_e6.py", "reproduce_e7.py", "reproduce_tools.py"])
 def test_the_reproductions_plot_each_run_with_posttrain_plot(tmp_path, script):
     """The reproductions write every run's metric plots with posttrain.plots.plot_runs (`posttrain plot`)."""
     pytest.importorskip("matplotlib")
@@ -364,3 +365,99 @@ def test_bench_multiturn_section_runs_and_counts_the_tokens(capsys):
         assert r["turns"] >= 1 and r["sampled"] > 0 and r["env_tokens"] > 0 and r["ratio"] > 0
         assert r["steps_ratio"] == (r["sampled"] + r["env_tokens"]) / r["sampled"]
     assert "steps ratio" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------------------- reproduce_tools.py
+def _episode(turns: list[tuple[str, list[tuple[str, str | None]]]], finish: str = "answer") -> dict:
+    """An Episode.to_dict(): turns of (text, [(tool result, error kind)])."""
+    return {"finish": finish, "messages": [],
+            "turns": [{"text": text, "reward": None, "sampled_tokens": 10, "env_tokens": 4 * len(calls),
+                       "tool_calls": [{"name": "calculator", "arguments": {}, "raw": "", "content": c, "error": e,
+                                       "seconds": 0.001} for c, e in calls]} for text, calls in turns]}
+
+
+def test_tools_report_names_why_each_episode_failed():
+    """cause() and behaviour() by hand on crafted episodes of a problem whose answer is 1743."""
+    from posttrain.verifiers.math_answer import MathVerifier
+
+    tools = _load(SCRIPTS / "reproduce_tools.py")
+    check = MathVerifier().check
+    call = '<tool_call>{"name": "calculator", "arguments": {"expression": "1068+806-131"}}</tool_call>'
+    right = _episode([(call, [("1743", None)]), ("The answer is 1743.", [])])
+    ignored = _episode([(call, [("1743", None)]), ("The answer is 1744.", [])])
+    wrong_expr = _episode([(call, [("2005", None)]), ("The answer is 2005.", [])])
+    recovered = _episode([(call, [("error: unexpected 'p'", "exception")]), (call, [("2005", None)]),
+                          ("The answer is 2005.", [])])
+    no_valid = _episode([(call, [("error: unexpected 'p'", "exception")]), ("The answer is 12.", [])])
+    no_call = _episode([("The answer is 12.", [])])
+    cut = _episode([(call, [("1000", None)]), (call, [("1001", None)])], finish="max_turns")
+    cases = [(right, 1.0, "right"), (ignored, 0.0, "right result ignored"), (wrong_expr, 0.0, "wrong expression"),
+             (recovered, 0.0, "wrong expression"), (no_valid, 0.0, "no valid call"), (no_call, 0.0, "no call"),
+             (cut, 0.0, "no answer turn")]
+    for ep, reward, want in cases:
+        assert tools.cause(ep, "1743", reward, check) == want
+    assert [tools.ignores_result(e, check) for e in (right, ignored, wrong_expr, no_call, cut)] == \
+        [False, True, False, None, None]
+    b = tools.behaviour([e for e, _, _ in cases], check)
+    assert b["called_a_tool"] == pytest.approx(6 / 7) and b["answered"] == pytest.approx(6 / 7)
+    assert b["calls_per_episode"] == pytest.approx(8 / 7)  # 1 + 1 + 1 + 2 + 1 + 0 + 2
+    assert b["valid_call_rate"] == pytest.approx(6 / 8)
+    assert b["episodes_with_a_tool_error"] == pytest.approx(2 / 7) and b["recovered_after_error"] == 0.5
+    assert b["ignores_last_result"] == pytest.approx(1 / 4)  # right, ignored, wrong_expr, recovered have a result
+    assert b["sampled_tokens"] == pytest.approx(10 * 14 / 7) and b["env_tokens"] == pytest.approx(4 * 8 / 7)
+    # the K metrics: 2 problems x 4 samples; pass@1 = mean right share; maj@4 by majority of answer keys
+    k = tools._k_metrics([[("5", True), ("5", True), ("6", False), (None, False)],
+                          [("7", False), ("7", False), ("8", True), ("9", False)]], 4)
+    assert k["pass_at_k"] == {1: pytest.approx((2 / 4 + 1 / 4) / 2), 4: 1.0} and k["maj_at_k"][4] == 0.5
+
+
+def _fake_tools_eval(acc: float, tools: bool, samples: bool = True) -> dict:
+    e = {"greedy_accuracy": acc, "greedy_seconds": 10.0, "greedy_tokens_per_problem": 40.0}
+    if samples:
+        e.update(pass_at_k={1: acc, 4: acc + 0.1, 16: acc + 0.2}, pass_curve=[acc + 0.2 * k / 15 for k in range(16)],
+                 maj_at_k={1: acc, 4: acc, 16: acc + 0.05})
+    if tools:
+        b = {"called_a_tool": 1.0, "valid_call_rate": 0.9, "calls_per_episode": 1.1, "turns_per_episode": 2.0,
+             "answered": 1.0, "episodes_with_a_tool_error": 0.1, "recovered_after_error": 1.0,
+             "ignores_last_result": 0.05, "sampled_tokens": 50.0, "env_tokens": 12.0, "tool_seconds": 0.001}
+        e.update(behaviour_greedy=b, greedy_causes={c: (acc if c == "right" else 0.0) for c in
+                                                    ("right", "no call", "no valid call", "no answer turn",
+                                                     "wrong expression", "right result ignored")},
+                 examples={"right": [{"question": "Q?", "answer": "5", "transcript": "assistant: 5"}]})
+    return e
+
+
+def test_tools_report_and_plots(tmp_path):
+    """The report of reproduce_tools.py from the numbers of a run: every table renders, the verdict follows the
+    numbers, GRPO's own gain over SFT is stated."""
+    tools = _load(SCRIPTS / "reproduce_tools.py")
+    ev = {"instruct": _fake_tools_eval(0.0, False), "instruct_tools": _fake_tools_eval(0.0, True, samples=False),
+          "sft": _fake_tools_eval(0.6, True), "grpo": _fake_tools_eval(0.65, True),
+          "grpo_no_tools": _fake_tools_eval(0.1, False)}
+    steps = [1, 2, 3, 4]
+    env = {k: [1.0] * 4 for k in ("env/tool_calls", "env/valid_calls", "env/called_a_tool", "env/sampled_tokens",
+                                  "env/env_tokens", "env/tool_seconds")}
+    run = {"steps": steps, "reward": [0.5] * 4, "step_seconds": [10.0] * 4, "eval_steps": [0, 2, 4],
+           "eval_accuracy": [0.6, 0.62, 0.65], "config": {"prompts_per_step": 16, "group_size": 8}, "env": env,
+           "completion_length": [30.0] * 4, "saved_behaviour": [dict(ev["sft"]["behaviour_greedy"], step=2, reward=0.5)]}
+    plain = dict(run, env={k: [None] * 4 for k in env}, saved_behaviour=[])
+    res = {"quick": False, "overrides": [], "threads": 2, "eval_rows": 100, "samples": 16, "temperature": 0.7,
+           "budget": "max_steps=4, prompts_per_step=16, group_size=8", "rollout_dtype": "auto",
+           "mixed_precision": "auto", "reused": ["sft"], "seconds": {"sft": 400.0, "grpo": 900.0, "grpo_no_tools": 300.0,
+                                                                      "eval": 600.0},
+           "eval": ev, "grpo": run, "grpo_no_tools": plain, "sft_config": {"max_steps": 60, "batch_size": 8},
+           "runtime_s": 2200.0, "load_average": (0.1, 2.0), "cpu": "AMD EPYC (family 25 model 17)"}
+    res["verdict"] = tools.verdict(ev)
+    res["compute"] = tools.compute(res)
+    assert res["compute"]["grpo"] == {"sequences": 512, "sampled_tokens": 512.0, "env_tokens": 512.0,
+                                      "tool_seconds": 512.0}
+    assert res["compute"]["grpo_no_tools"]["sampled_tokens"] == 128 * 30.0 * 4
+    res["figures"] = tools.plots(res, tmp_path)
+    assert all((tmp_path / f).is_file() for f in res["figures"]) and len(res["figures"]) == 3
+    text = tools.report_md(res)
+    assert res["verdict"]["met"] and "**met**" in text and "+5.0 points greedy" in text
+    for heading in ("## Held-out accuracy", "## Why the wrong greedy answers are wrong", "## Behaviour", "## Compute"):
+        assert heading in text
+    assert "| instruct, tool prompted | **0.0%** | n/a |" in text
+    ev["grpo_no_tools"]["greedy_accuracy"] = 0.6
+    assert not tools.verdict(ev)["met"]
