@@ -264,3 +264,62 @@ def test_eval_and_lora_on_the_real_model(chain, capsys):
     final = out / "tiny-summarize" / "sft" / "final"
     assert not (final / "adapter_config.json").exists()  # merged: a plain model
     assert AutoModelForCausalLM.from_pretrained(final).config.num_hidden_layers == 30
+
+
+# ----------------------------------------------------------------------------- tools: multi-turn episodes (issue 35)
+def test_the_tool_call_format_round_trips_through_the_chatml_template(loaded):
+    """A word-calc demonstration rendered by SmolLM2's template: each rendering of a shorter conversation is a prefix
+    of the longer one's (what multi-turn episodes append relies on), and the call parses back from the rendered
+    text to the same name and arguments."""
+    from posttrain.tasks import wordcalc
+    from posttrain.verifiers.envs.base import parse_tool_calls
+
+    _, tok = loaded
+    row = wordcalc.make_examples(8, 0, "eval")[7]  # the eighth recovers from a refused call first
+    messages = row["messages"]
+    assert [m["role"] for m in messages][-3:] == ["assistant", "tool", "assistant"]
+    renders = [tok.apply_chat_template(messages[:k], tokenize=False) for k in range(2, len(messages) + 1)]
+    for short, long in zip(renders, renders[1:]):
+        assert long.startswith(short)
+    call = [m for m in messages if m["role"] == "assistant"][-2]["content"]
+    parsed = parse_tool_calls(renders[-1][renders[-1].index(call):])[0]
+    assert (parsed.error, parsed.name, parsed.arguments) == (None, "calculator", {"expression": row["meta"]["expression"]})
+
+
+def test_smol_tools_trains_on_exactly_the_sampled_multi_turn_tokens(smol, tmp_path):
+    """`posttrain grpo --recipe smol-tools`, shortened and in fp32: a short LoRA SFT teaches the call, two GRPO steps
+    in calc-words sample episodes with tool results; the trainer's log-probs of the saved episodes (recomputed with
+    the policy that sampled them: the SFT model, GRPO's adapters start at 0) equal the sampling log-probs within
+    1e-4 on sampled tokens, environment tokens are masked out, mismatch/kl is ~0, and final/ reloads and calls the
+    tool."""
+    from posttrain.config import ModelConfig
+    from posttrain.logprobs import batched_logprobs
+    from posttrain.models import load_model, load_tokenizer
+    from posttrain.rollout import collate_rollouts, load_rollouts
+    from posttrain.rollout.multiturn import generate_episodes
+    from posttrain.verifiers.envs import get_env
+
+    out = tmp_path / "runs"
+    assert main(["grpo", "--recipe", "smol-tools", f"run.output_dir={out}", f"model.path={smol}", "run.quiet=true",
+                 THREADS, "run.mixed_precision=no", "rollout.dtype=float32", "task.n_train=48", "task.n_eval=8",
+                 "sft.max_steps=12", "sft.batch_size=4", "sft.lr=1e-3", "sft.warmup_steps=0", "sft.final_eval_rows=0",
+                 "grpo.prompts_per_step=2", "grpo.group_size=4", "grpo.max_steps=2", "grpo.eval_every=0",
+                 "grpo.eval_rows=0", "grpo.final_eval_rows=0", "grpo.save_every=0", "grpo.save_rollouts_every=1",
+                 "grpo.zero_variance=keep", "grpo.env_options={max_turns: 3}"]) == 0
+    _drop_checkpoints(out)
+    run = out / "smol-tools"
+    steps = [x for x in _metrics(run / "grpo") if "reward/mean" in x]
+    assert len(steps) == 2 and all(abs(s["mismatch/kl"]) < 1e-3 for s in steps), steps
+    rollouts = load_rollouts(run / "grpo" / "rollouts" / "step-000001.jsonl")
+    multi = [r for r in rollouts if 0 in r.completion_mask]  # episodes with environment tokens (a tool result)
+    assert multi, [r.extras["episode"]["turns"] for r in rollouts]
+    sft, tok = load_model(run / "sft" / "final"), load_tokenizer(run / "sft" / "final", ModelConfig())
+    batch = collate_rollouts(multi, tok.pad_token_id)
+    lp, _ = batched_logprobs(sft, batch, temperature=0.7)
+    cm = batch.completion_mask.bool()
+    torch.testing.assert_close(lp[cm], batch.logprobs[cm], atol=1e-4, rtol=0)
+    assert (batch.logprobs[~cm] == 0).all()
+    final = load_model(run / "grpo" / "final")
+    eps = generate_episodes(final, tok, get_env("calc-words"), [{"prompt": multi[0].extras["episode"]["messages"][1]
+                                                                 ["content"], "answer": "0"}], greedy=True)
+    assert eps[0].extras["episode"]["turns"][0]["tool_calls"], eps[0].text
