@@ -39,7 +39,11 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             ours against TRL's on it (word-math rows through the chat template; SFT / DPO batch 4, GRPO 2 prompts x
             4 x <= 64 tokens, lr 1e-7 so that neither side's completions shrink under the length reward during
             the run; each side's mean completion length is printed), each fp32 and with bf16 on both sides (ours
-            run.mixed_precision=bf16, GRPO also rollout.dtype=bfloat16; TRL bf16=True). ~20 min in all. The bf16
+            run.mixed_precision=bf16, GRPO also rollout.dtype=bfloat16; TRL bf16=True); then one multi-turn GRPO
+            step with the calculator, as the tools section does but on the real model: a short LoRA SFT on word-calc's
+            tool-use demonstrations first (untimed, ~1 min), calc-words on word-calc's held-out problems, 2 prompts x
+            8 episodes, <= 3 turns x 64 tokens, <= 256 in all, both sides with CHATML_TOOL_TEMPLATE (SmolLM2's ChatML
+            plus `tool_calls`), fp32 and bf16. ~30 min in all. The bf16
             rows run where bf16 is native and faster (`--real-bf16 auto`, the default: what run.mixed_precision=auto
             decides); on other CPUs bf16 is emulated, 2-5x slower than fp32, and `--real-bf16 yes` forces them.
   multiturn multi-turn episodes with a tool (posttrain.rollout.multiturn; a random tiny chat model whose turns end
@@ -145,9 +149,9 @@ def _load() -> str:
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
-def matmul_gflops(n: int, repeats: int, device: str = "cpu") -> float:
-    a = torch.randn(n, n, device=device)
-    b = torch.randn(n, n, device=device)
+def matmul_gflops(n: int, repeats: int, device: str = "cpu", dtype: torch.dtype = torch.float32) -> float:
+    a = torch.randn(n, n, device=device).to(dtype)
+    b = torch.randn(n, n, device=device).to(dtype)
     for _ in range(2):
         a @ b
     times = []
@@ -171,6 +175,47 @@ def matmul_peak(args) -> float:
     print(f"fp32 matmul rate ({n}^3, {torch.get_num_threads()} threads): {now:.0f} GFLOP/s now, "
           f"{args.matmul_peak:.0f} GFLOP/s best this run (the reference for '% of matmul')")
     return args.matmul_peak
+
+
+def stream_gbs(repeats: int, device: str = "cpu", dtype: torch.dtype = torch.float32, rows: int = 16) -> float:
+    """Weight-streaming bandwidth: a batch of `rows` vectors through a 16384 x 4096 matrix (256 MB in fp32, 128 MB
+    in bf16; far past the caches), as a decode step streams its weights, or a sum over it when that reads faster;
+    GB/s of the matrix's bytes, best of `repeats`."""
+    w = torch.randn(16384, 4096, device=device).to(dtype)
+    x = torch.randn(rows, 4096, device=device).to(dtype)
+    for _ in range(2):
+        x @ w.T
+        w.sum()
+    # the faster of the matmul and a plain reduction over the same bytes: what streaming the matrix can reach here
+    best = min(min(_timed(lambda: x @ w.T, device), _timed(w.sum, device)) for _ in range(repeats))
+    return w.numel() * w.element_size() / best / 1e9
+
+
+def real_limits(args) -> dict:
+    """This machine's limits on this run's threads, measured in the same run as the stages they are compared with:
+    the matmul rate (2048^3, fp32 and, with the bf16 rows, bf16) and the weight-streaming bandwidth (stream_gbs)."""
+    n = 1024 if args.quick else 2048
+    dtypes = {"fp32": torch.float32, **({"bf16": torch.bfloat16} if args.bf16_rows else {})}
+    out = {p: {"matmul_gflops": matmul_gflops(n, 10, args.device, d), "stream_gbs": stream_gbs(10, args.device, d)}
+           for p, d in dtypes.items()}
+    print("limits measured here: " + "; ".join(f"{p} matmul {v['matmul_gflops']:.0f} GFLOP/s ({n}^3), weight stream "
+                                              f"{v['stream_gbs']:.1f} GB/s (16 x 4096 through 16384 x 4096)"
+                                              for p, v in out.items()))
+    return out
+
+
+def token_flops(model, tokens: float, passes: float = 3.0) -> float:
+    """2 * N * tokens * passes: the "6N" rule with passes=3 (forward + backward), 1 for a forward alone; N counts
+    the blocks and the output head (d x V, run at every position here); attention's quadratic term is left out
+    (rows of ~100-300 tokens: a few % of the work), so the fractions slightly understate the work done."""
+    cfg = model.config
+    n = sum(p.numel() for p in model.model.layers.parameters()) + cfg.hidden_size * cfg.vocab_size
+    return 2.0 * n * tokens * passes
+
+
+def _of_peak(flops: float, seconds: float, limits: dict, precision: str) -> str:
+    rate = flops / seconds / 1e9
+    return f"{rate:.0f} GFLOP/s, {100 * rate / limits[precision]['matmul_gflops']:.0f}% of the {precision} matmul rate"
 
 
 def _sync(device: str) -> None:
@@ -1337,13 +1382,21 @@ def bench_real(args) -> dict:
         print("bf16 rows skipped (--real-bf16 yes runs them): " + ("--real-bf16 no" if args.real_bf16 == "no" else
               "bf16 is not native and faster on this machine (runtime.native_bf16: run.mixed_precision=auto and "
               "rollout.dtype=auto run fp32 here)"))
+    parts = set(args.real_parts)
+    limits = real_limits(args)
     tok, model = _real_base(args)
     models = {"float32": model, "bfloat16": copy.deepcopy(model) if args.bf16_rows else None}
+    weight_bytes = {"fp32": 4 * count_parameters(model), "bf16": 2 * count_parameters(model)}  # read per decode step
+    out_all: dict = {"limits": limits}
+    if "engine" not in parts:
+        args.real_batches = []
     M = args.max_new_tokens
     print(f"{args.real}: {count_parameters(model) / 1e6:.1f}M parameters; prompts: word-math held-out problems "
           f"through the chat template; sampling at T=1, exactly {M} new tokens per row")
     rows_out = []
-    print(f"{'batch':>5} {'generate tok/s':>15} {'engine fp32':>12} {'ratio':>7} {'engine bf16 w.':>15} {'ratio':>7}")
+    if args.real_batches:
+        print(f"{'batch':>5} {'generate tok/s':>15} {'engine fp32':>12} {'ratio':>7} {'engine bf16 w.':>15} "
+              f"{'ratio':>7}")
     for B in args.real_batches:
         prompts = [r["prompt"] for r in wordmath.make_examples(B, 0, "eval")]
         batch = tok([chat.render_prompt(tok, p) for p in prompts], add_special_tokens=False, padding=True,
@@ -1376,10 +1429,23 @@ def bench_real(args) -> dict:
         row = {"batch": B, "new_tokens": M, **{f"{k}_tok_s": B * M / t for k, t in med.items()},
                **{f"ratio_{k}": med["model.generate"] / med[k] for k in ("fp32", "bf16") if k in med}, "times": times}
         rows_out.append(row)
+        for p, k in (("fp32", "fp32"), ("bf16", "bf16")):
+            if k in med:  # each decode step streams every weight once: bytes x steps/s against the measured stream
+                row[f"{k}_weight_gbs"] = weight_bytes[p] * M / med[k] / 1e9
+                row[f"{k}_of_stream"] = row[f"{k}_weight_gbs"] / limits[p]["stream_gbs"]
         bf16_cols = f"{row['bf16_tok_s']:>15.0f} {row['ratio_bf16']:>6.2f}x" if "bf16" in med else f"{'-':>15} {'-':>7}"
+        frac = "  ".join(f"{k} weights {row[f'{k}_weight_gbs']:.1f} GB/s = {100 * row[f'{k}_of_stream']:.0f}% of "
+                         f"the stream" for k in ("fp32", "bf16") if f"{k}_weight_gbs" in row)
         print(f"{B:>5} {row['model.generate_tok_s']:>15.0f} {row['fp32_tok_s']:>12.0f} {row['ratio_fp32']:>6.2f}x "
-              f"{bf16_cols}", flush=True)
-    print("ratio = model.generate time / engine time (medians of alternating runs; generate runs the fp32 model).")
+              f"{bf16_cols}   {frac}", flush=True)
+    if rows_out:
+        print("ratio = model.generate time / engine time (medians of alternating runs; generate runs the fp32 model). "
+              "GB/s: the engine's weight bytes (every parameter, in its dtype) x decode steps per second, against "
+              "the weight-streaming bandwidth measured above (prefill included in the time, so slightly low).")
+    out_all["rows"] = rows_out
+    if "step" not in parts:
+        out_all["trainers"] = _real_trainers(args, limits, parts)
+        return out_all
 
     # one training step (forward + backward + AdamW) of the HF forward, fp32 and under bf16 autocast
     rows = wordmath.make_examples(8, 0, "train")
@@ -1413,17 +1479,20 @@ def bench_real(args) -> dict:
     print(f"training step, batch 8 x {enc['input_ids'].shape[1]} tokens (HF forward + backward + AdamW): fp32 "
           f"{fp32_s:.2f} s" + (f", bf16 autocast {bf16_s:.2f} s ({fp32_s / bf16_s:.2f}x); loss of the same weights "
                                f"fp32 {losses[False]:.4f}, bf16 autocast {losses[True]:.4f}" if bf16_s else ""))
+    n_tok = int(enc["attention_mask"].sum())
+    print(f"  achieved (6N x {n_tok} non-pad tokens): fp32 {_of_peak(token_flops(model, n_tok), fp32_s, limits, 'fp32')}"
+          + (f"; bf16 {_of_peak(token_flops(model, n_tok), bf16_s, limits, 'bf16')}" if bf16_s else ""))
     del train_model, opt
     gc.collect()
-    return {"rows": rows_out, "train_step": {"tokens": int(enc["input_ids"].numel()), "fp32_s": fp32_s,
+    return {**out_all, "train_step": {"tokens": int(enc["input_ids"].numel()), "fp32_s": fp32_s,
                                              "loss_fp32": losses[False], "loss_bf16": losses.get(True),
                                              "bf16_autocast_s": bf16_s, "speedup": fp32_s / bf16_s if bf16_s else None,
                                              "times": {"fp32": t_step[False], "bf16": t_step.get(True)}},
-            "logprob_step": _real_logprob_step(args, model),
-            "trainers": _real_trainers(args)}
+            "logprob_step": _real_logprob_step(args, model, limits),
+            "trainers": _real_trainers(args, limits, parts)}
 
 
-def _real_logprob_step(args, model) -> dict:
+def _real_logprob_step(args, model, limits: dict) -> dict:
     """The policy update's forward + backward (`sequence_logprobs` of a GRPO-like batch: 2 prompts x 4 completions,
     60 prompt + 64 completion tokens) on the real model: the lean training forward against the HF forward, each
     fp32 and under bf16 autocast (what run.mixed_precision=bf16 gives the trainers), with how far each moves the
@@ -1467,16 +1536,20 @@ def _real_logprob_step(args, model) -> dict:
     for lean, bf16 in variants:
         name = f"{'lean' if lean else 'HF'} {'bf16 autocast' if bf16 else 'fp32'}"
         err = float((lps[(lean, bf16)] - ref).abs().max())
-        print(f"  {name:<18} {med[(lean, bf16)]:6.2f} s   max |log-prob - lean fp32's| {err:.2e}")
+        print(f"  {name:<18} {med[(lean, bf16)]:6.2f} s   max |log-prob - lean fp32's| {err:.2e}   "
+              f"{_of_peak(token_flops(model, float(am.sum())), med[(lean, bf16)], limits, 'bf16' if bf16 else 'fp32')}")
         out[name] = {"s": med[(lean, bf16)], "times": times[(lean, bf16)], "max_abs_logprob_diff": err}
     del m
     gc.collect()
     return out
 
 
-def _real_trainers(args) -> dict:
-    """One SFT, DPO and GRPO step of ours against TRL's on the real model, fp32 and under bf16 (see the setups)."""
+def _real_trainers(args, limits: dict, parts: set) -> dict:
+    """One SFT, DPO and GRPO step of ours against TRL's on the real model, fp32 and under bf16 (see the setups), and
+    the multi-turn GRPO step with the calculator (`parts`: "trainers", "tools")."""
     out: dict = {}
+    if "trainers" not in parts:
+        return _real_tools(args, out, parts)
     repeats = 1 if args.quick else 2
     print(f"\n{'stage (real model)':<34} {'precision':>9} {'TRL s/step':>11} {'posttrain':>10} {'ratio':>7}")
 
@@ -1497,7 +1570,13 @@ def _real_trainers(args) -> dict:
             mt, mo = statistics.median(times["trl"]) / ctx.S, statistics.median(times["posttrain"]) / ctx.S
             label = (f"SFT, {ctx.B} rows x {ctx.tokens / (ctx.S * ctx.B):.0f} tok" if stage == "sft" else
                      f"DPO, {ctx.B} pairs x {ctx.tokens / (ctx.S * ctx.B):.0f} tok")
-            row(label, "bf16" if bf16 else "fp32", mt, mo, dict(times=times, tokens=ctx.tokens, steps=ctx.S))
+            p = "bf16" if bf16 else "fp32"
+            row(label, p, mt, mo, dict(times=times, tokens=ctx.tokens, steps=ctx.S))
+            # SFT: forward + backward of every token; DPO: the same for chosen and rejected, plus the reference
+            # forward over them (another third)
+            flops = token_flops(_real_base(args)[1], ctx.tokens / ctx.S, 3.0 if stage == "sft" else 4.0)
+            print(f"  achieved: ours {_of_peak(flops, mo, limits, p)}; TRL {_of_peak(flops, mt, limits, p)}",
+                  flush=True)
             ctx.cleanup()
     ctx = _grpo_setup(args, real=True)
     try:
@@ -1516,7 +1595,38 @@ def _real_trainers(args) -> dict:
     print("ratio = TRL time per step / posttrain time per step; same model, rows, batch and settings. bf16: autocast "
           "over fp32 weights on both sides (GRPO: ours also samples with bf16 weights, rollout.dtype=bfloat16; TRL "
           "generates under its autocast).")
+    return _real_tools(args, out, parts)
+
+
+def _real_tools(args, out: dict, parts: set) -> dict:
+    """The multi-turn GRPO rows of the real section (the tools section's step on the real model), into `out`."""
+    if "tools" not in parts:
+        return out
+    precisions = args.real_autocast
+
+    def row(stage, precision, mt, mo):
+        print(f"\n{'stage (real model)':<34} {'precision':>9} {'TRL s/step':>11} {'posttrain':>10} {'ratio':>7}")
+        print(f"{stage:<34} {precision:>9} {mt:>11.3f} {mo:>10.3f} {mt / mo:>6.2f}x", flush=True)
+
+    sft_dir, sft_s, sft_root = _real_tools_sft(args)
+    lim = REAL_TOOL_LIMITS
+    try:
+        for bf16 in precisions:
+            p = "bf16" if bf16 else "fp32"
+            print(f"\nmulti-turn GRPO with the calculator, {p}: the real model after a short tool-use SFT "
+                  f"({sft_s:.0f} s, untimed), calc-words (word-calc's held-out problems), 2 prompts x 8 episodes, "
+                  f"<= {lim['max_turns']} turns x {lim['max_turn_tokens']} tokens, <= {lim['max_total_tokens']} in "
+                  "all, lr 1e-7 (the episodes stay alike over a run), first 2 steps of each run excluded", flush=True)
+            ctx = _tools_setup(args, real=True, bf16=bf16, sft_dir=sft_dir)
+            r = _run_tools(ctx, args, "posttrain grpo grpo.env=calc-words", p)
+            out.setdefault("tools", {})[p] = r
+            if "trl_s_per_step" in r:
+                row("multi-turn GRPO, 2 x 8 episodes", p, r["trl_s_per_step"], r["ours_s_per_step"])
+    finally:
+        shutil.rmtree(sft_root, ignore_errors=True)
+        _REAL.pop("tools_sft", None)
     return out
+
 
 # ------------------------------------------------------------------ section: multiturn
 
@@ -1612,38 +1722,87 @@ TOOL_CHAT_TEMPLATE = (
 )
 
 
-def tool_response_template(eos_token: str) -> dict:
+# The real model's ChatML (SmolLM2's template: a default system message, `<|im_start|>ROLE\n...<|im_end|>\n`) plus
+# an assistant message's structured `tool_calls` in the same call format, as TOOL_CHAT_TEMPLATE does for the preset.
+CHATML_TOOL_TEMPLATE = (
+    "{%- for message in messages -%}"
+    "{%- if loop.first and messages[0]['role'] != 'system' -%}"
+    "{{ '<|im_start|>system\nYou are a helpful AI assistant named SmolLM, trained by Hugging Face<|im_end|>\n' }}"
+    "{%- endif -%}"
+    "{{ '<|im_start|>' + message['role'] + '\n' + (message['content'] or '') }}"
+    "{%- if message['role'] == 'assistant' and message['tool_calls'] is defined and message['tool_calls'] -%}"
+    "{%- for call in message['tool_calls'] -%}"
+    "{%- set f = call['function'] if call['function'] is defined else call -%}"
+    "{{ '<tool_call>' + {'name': f['name'], 'arguments': f['arguments']} | tojson + '</tool_call>' }}"
+    "{%- endfor -%}"
+    "{%- endif -%}"
+    "{{ '<|im_end|>\n' }}"
+    "{%- endfor -%}"
+    "{%- if add_generation_prompt %}{{ '<|im_start|>assistant\n' }}{% endif -%}"
+)
+
+
+def tool_response_template(eos_token: str, anchor: str = "<|assistant|>") -> dict:
     """TRL's response parser for TOOL_CHAT_TEMPLATE (a transformers `response_template`, as TRL writes them for
-    Qwen3 in trl.chat_template_utils): the assistant's text after `<|assistant|>`, each <tool_call>{json}</tool_call>
-    a call, the content up to the eos."""
-    return {"defaults": {"role": "assistant"}, "start_anchor": "<|assistant|>",
+    Qwen3 in trl.chat_template_utils): the assistant's text after `anchor` (the template's assistant header), each
+    <tool_call>{json}</tool_call> a call, the content up to the eos."""
+    return {"defaults": {"role": "assistant"}, "start_anchor": anchor,
             "fields": {"tool_calls": {"open": "<tool_call>", "close": "</tool_call>", "repeats": True,
                                       "content": "json", "transform": {"type": "function", "function": "{content}"}},
                        "content": {"close": eos_token, "content": "text"}}}
 
 
 TOOLS_UNEQUAL = (
-    "budgets: ours per turn (calc limits: 48 sampled tokens) and in all (192 sampled + environment tokens, 3 turns); "
-    "TRL generation_kwargs max_new_tokens=48 per generate call, max_completion_length=192 over every turn (a tool "
-    "result that would pass it is dropped and the episode ends; the last turn is cut to fit), "
-    "max_tool_calling_iterations=2 (3 generations)",
+    "budgets: ours per turn (the environment's max_turn_tokens sampled tokens) and in all (max_total_tokens sampled + "
+    "environment tokens, max_turns turns); TRL generation_kwargs max_new_tokens=max_turn_tokens per generate call, "
+    "max_completion_length=max_total_tokens over every turn (a tool result that would pass it is dropped and the "
+    "episode ends; the last turn is cut to fit), max_tool_calling_iterations=max_turns - 1",
     "a malformed call (not JSON, no </tool_call>): ours answers it with 'error: malformed ...' and the episode goes "
     "on; TRL's parser falls back to plain text, so the turn has no call and the episode ends there",
     "a tool error: ours returns 'error: ValueError: ...', TRL \"{'error': '...'}\" (different token counts)",
-    "a turn cut at 48 tokens: ours ends the episode (finish 'length'); TRL runs a closed call in it if it has one",
+    "a turn cut at max_turn_tokens: ours ends the episode (finish 'length'); TRL runs a closed call in it if it has one",
     "decoding: ours keeps each row's KV cache across turns and feeds tool tokens beside the other rows' sampling; "
     "TRL calls generate again for the rows that called a tool, on their whole conversation (a new prefill per turn); "
     "ours runs the calls in its ToolRunner's threads (5 s timeout) while other rows decode, TRL one after another "
     "between generate calls",
     "prompt order: ours draws its prompts by seed, TRL's sampler shuffles its own way: different problems per step "
     "from the same 64, and different random streams, so each side's turns and tokens are printed",
-    "chat template: TRL refuses the preset's own template (supports_tool_calling: it drops tool_calls); both sides "
-    "get TOOL_CHAT_TEMPLATE, which renders our episodes exactly as the preset's did, and TRL's tokenizer a "
-    "response_template (tool_response_template) that parses the calc call format",
+    "chat template: TRL refuses the model's own template (supports_tool_calling: it drops tool_calls); both sides "
+    "get its tool version (TOOL_CHAT_TEMPLATE for the preset, CHATML_TOOL_TEMPLATE for SmolLM2's ChatML), which "
+    "renders our episodes exactly as the model's own did, and TRL's tokenizer a response_template "
+    "(tool_response_template) that parses the calc call format",
 )
 
 
-def _tools_setup(args) -> SimpleNamespace:
+REAL_TOOL_LIMITS = {"max_turns": 3, "max_turn_tokens": 64, "max_total_tokens": 256}  # calc-words in the real rows
+
+
+def _real_tools_sft(args) -> tuple[Path, float, Path]:
+    """The real model after a short LoRA SFT on word-calc's tool-use demonstrations (merged into a plain model; what
+    tests/real checks teaches the call): `posttrain sft`, untimed, ~1 min; cached for the process. (model directory,
+    its seconds, the temporary root to remove)"""
+    if "tools_sft" not in _REAL:
+        from posttrain.cli import main as posttrain_main
+
+        root = Path(tempfile.mkdtemp(prefix="posttrain-bench-tools-sft-"))
+        recipe = root / "sft.yaml"
+        recipe.write_text(f"""# the real tools rows' SFT (scripts/bench.py --only real)
+task: {{name: word-calc, n_train: 48, n_eval: 8}}
+model: {{path: {Path(args.real).resolve()}, max_length: 512}}
+lora: {{enabled: true}}
+sft: {{max_steps: 12, batch_size: 4, lr: 1.0e-3, warmup_steps: 0, eval_every: 0, save_every: 0, final_eval_rows: 0}}
+""")
+        out = io.StringIO()
+        t0 = time.perf_counter()
+        with contextlib.redirect_stdout(out):
+            rc = posttrain_main(["sft", "--recipe", str(recipe), f"run.output_dir={root / 'runs'}",
+                                 f"run.threads={args.threads}", "run.quiet=true"])
+        assert rc == 0, "posttrain sft failed: " + " | ".join(out.getvalue().strip().splitlines()[-3:])
+        _REAL["tools_sft"] = (root / "runs" / "sft" / "sft" / "final", time.perf_counter() - t0, root)
+    return _REAL["tools_sft"]
+
+
+def _tools_setup(args, real: bool = False, bf16: bool = False, sft_dir: Path | None = None) -> SimpleNamespace:
     """One multi-turn GRPO step in the calc environment: `posttrain grpo` with grpo.env=calc (the trainer, through the
     CLI) against TRL's GRPOTrainer with the calculator as a tool (`tools=[calculator]`).
 
@@ -1660,28 +1819,53 @@ def _tools_setup(args) -> SimpleNamespace:
     clipping 1.0, fp32, no gradient checkpointing, zero-variance groups trained (ours zero_variance=keep; TRL always).
     Time per step as in the grpo section: ours is metrics.jsonl's time/step, TRL's is between its on_step_begin and
     on_step_end (generation, tool calls and the update all happen inside the step); the first 2 steps of every run
-    are warm-up. What could not be made equal: TOOLS_UNEQUAL, printed with the results."""
+    are warm-up. What could not be made equal: TOOLS_UNEQUAL, printed with the results.
+
+    real=True: the real model after a short tool-use SFT (`sft_dir`, from `_real_tools_sft`), calc-words (word
+    problems, REAL_TOOL_LIMITS), word-calc's first 64 held-out problems, CHATML_TOOL_TEMPLATE on both sides; bf16:
+    ours run.mixed_precision=bf16 with rollout.dtype=bfloat16, TRL bf16=True (autocast, its generation included).
+    Both sides' lr 1e-7 there, as in the real GRPO row, so the episodes do not change over a run."""
     from posttrain.chat import PRESET_CHAT_TEMPLATE, encode_prompts
     from posttrain.cli import main as posttrain_main
     from posttrain.models import load_model, load_tokenizer, save_model
     from posttrain.tasks import calc as calc_task
     from posttrain.verifiers.envs import format_tool_call
-    from posttrain.verifiers.envs.calc import CalcEnv, calculator
+    from posttrain.verifiers.envs.calc import CalcEnv, WordCalcEnv, calculator
 
     root = Path(tempfile.mkdtemp(prefix="posttrain-bench-tools-"))
-    steps, group = (8, 8) if args.quick else (14, 8)
-    env = CalcEnv()
+    if real:
+        from posttrain.problems import env_problem
+        from posttrain.tasks import wordcalc
+
+        (steps, group), template, anchor, lr = (4, 8) if args.quick else (6, 8), CHATML_TOOL_TEMPLATE, \
+            "<|im_start|>assistant\n", 1e-7
+        env = WordCalcEnv(**REAL_TOOL_LIMITS)
+        problems = [env_problem(r) for r in wordcalc.make_examples(64, 0, "eval")]
+        base = load_model(sft_dir)
+        env_line = f"  env: calc-words\n  env_options: {json.dumps(REAL_TOOL_LIMITS)}"
+        model_line = f"model: {{path: {sft_dir}, max_length: 768, start_from: base}}"
+        task_line = "task: {name: word-calc, n_train: 8, n_eval: 8}"
+    else:
+        (steps, group), template, anchor, lr = (8, 8) if args.quick else (14, 8), TOOL_CHAT_TEMPLATE, \
+            "<|assistant|>", 1e-4
+        env = CalcEnv()
+        problems = CalcEnv.problems(64, seed=1)
+        tok = train_tokenizer(calc_task.corpus(300, 0), vocab_size=512, split_digits=True, chat=True)
+        tok.chat_template = template
+        base = build_model("tiny", tok, seed=0)
+        save_model(base, tok, root / "model")
+        env_line = "  env: calc"
+        model_line = f"model: {{path: {root / 'model'}, max_length: 512, chat_template: \"on\"}}"
+        task_line = "task: {name: tiny-calc, n_train: 2000, n_eval: 8}"
     lim = env.limits
-    tok = train_tokenizer(calc_task.corpus(300, 0), vocab_size=512, split_digits=True, chat=True)
-    tok.chat_template = TOOL_CHAT_TEMPLATE
-    base = build_model("tiny", tok, seed=0)
-    save_model(base, tok, root / "model")
-    problems = CalcEnv.problems(64, seed=1)
     (root / "problems.jsonl").write_text("".join(json.dumps(p) + "\n" for p in problems))
     recipe = root / "bench-tools.yaml"
-    recipe.write_text(f"""# multi-turn GRPO step benchmark (scripts/bench.py --only tools); SFT ~1 min, then GRPO
-task: {{name: tiny-calc, n_train: 2000, n_eval: 8}}
-model: {{path: {root / 'model'}, max_length: 512, chat_template: "on"}}
+    precision = "bf16" if bf16 else "no"
+    recipe.write_text(f"""# multi-turn GRPO step benchmark (scripts/bench.py --only tools / --only real); tiny: SFT ~1 min, then GRPO
+{task_line}
+{model_line}
+run: {{mixed_precision: {precision}}}
+rollout: {{dtype: {"bfloat16" if bf16 else "float32"}}}
 sft:
   max_steps: {args.tools_sft_steps}
   batch_size: 8
@@ -1690,13 +1874,13 @@ sft:
   save_every: 0
   final_eval_rows: 0
 grpo:
-  env: calc
+{env_line}
   train_file: {root / 'problems.jsonl'}
   prompts_per_step: 2
   group_size: {group}
   max_new_tokens: {lim.max_total_tokens}
   zero_variance: keep
-  lr: 1.0e-4
+  lr: {lr:.1e}
   eval_every: 0
   eval_rows: 0
   final_eval_rows: 0
@@ -1711,8 +1895,9 @@ grpo:
         assert rc == 0, f"posttrain {stage} failed: " + " | ".join(out.getvalue().strip().splitlines()[-3:])
 
     t0 = time.perf_counter()
-    cli("sft")
-    sft_dir = root / "runs" / "bench-tools" / "sft" / "final"
+    if not real:
+        cli("sft")
+        sft_dir = root / "runs" / "bench-tools" / "sft" / "final"
     ctx = SimpleNamespace(steps=steps, group=group, base=base, sft_seconds=time.perf_counter() - t0, trl_error=None,
                           runners={}, cleanup=lambda: shutil.rmtree(root, ignore_errors=True))
 
@@ -1740,26 +1925,32 @@ grpo:
 
     def trl_tokenizer():
         t = load_tokenizer(sft_dir)
-        t.response_template = tool_response_template(t.eos_token)
+        t.chat_template = template
+        t.response_template = tool_response_template(t.eos_token, anchor)
         return t
 
     trl_tok = trl_tokenizer()
     preset = copy.deepcopy(trl_tok)
     preset.chat_template = PRESET_CHAT_TEMPLATE
+    if real:
+        preset.chat_template = load_tokenizer(args.real).chat_template  # the real model's own ChatML
     ctx.template_check = dict(preset=supports_tool_calling(preset), tools=supports_tool_calling(trl_tok))
     # the same prompt tokens on both sides, and a tool-calling turn that TRL renders from its parsed call (content "",
     # tool_calls) renders as our episode's text of that turn does
     first = [env.reset(p) for p in problems]
     ours_ids = encode_prompts(trl_tok, first)
+    if real:  # the tool template renders our episodes' prompts as the model's own template does
+        assert ours_ids == encode_prompts(preset, first), "CHATML_TOOL_TEMPLATE renders prompts differently"
     trl_ids = [trl_tok.apply_chat_template(m, tools=[calculator], add_generation_prompt=True, tokenize=True,
                                            return_dict=False) for m in first]
     assert ours_ids == trl_ids, "TRL's prompt token ids differ from ours"
-    args_ = {"expression": problems[0]["expression"]}
+    args_ = {"expression": problems[0]["expression"] if "expression" in problems[0] else
+             problems[0]["meta"]["expression"]}
     as_text = first[0] + [{"role": "assistant", "content": format_tool_call("calculator", args_)},
-                          {"role": "tool", "content": problems[0]["answer"]}]
+                          {"role": "tool", "content": str(problems[0]["answer"])}]
     call = {"type": "function", "function": {"name": "calculator", "arguments": args_}}
     as_call = first[0] + [{"role": "assistant", "content": "", "tool_calls": [call]},
-                          {"role": "tool", "name": "calculator", "content": problems[0]["answer"]}]
+                          {"role": "tool", "name": "calculator", "content": str(problems[0]["answer"])}]
     assert trl_tok.apply_chat_template(as_text, tokenize=False, add_generation_prompt=True) == \
         trl_tok.apply_chat_template(as_call, tokenize=False, add_generation_prompt=True), \
         "TOOL_CHAT_TEMPLATE renders TRL's tool-calling turn differently from our episode's"
@@ -1807,8 +1998,8 @@ grpo:
                           max_completion_length=lim.max_total_tokens,
                           generation_kwargs={"max_new_tokens": lim.max_turn_tokens},
                           max_tool_calling_iterations=lim.max_turns - 1, temperature=1.0, beta=0.0, num_iterations=1,
-                          learning_rate=1e-4, lr_scheduler_type="constant", max_grad_norm=1.0, max_steps=steps,
-                          bf16=False, fp16=False, **_no_checkpointing(), use_cpu=args.device == "cpu",
+                          learning_rate=lr, lr_scheduler_type="constant", max_grad_norm=1.0, max_steps=steps,
+                          bf16=bf16, fp16=False, **_no_checkpointing(), use_cpu=args.device == "cpu",
                           logging_strategy="no", save_strategy="no", report_to=[], disable_tqdm=True,
                           dataloader_num_workers=0, seed=0)
         probe = StepProbe()
@@ -1830,24 +2021,31 @@ grpo:
 
 
 def bench_tools(args) -> dict:
-    import traceback
-
     ctx = _tools_setup(args)
-    steps = ctx.steps
-    rounds = 1 if args.quick else 2
     print(f"tiny: {count_parameters(ctx.base) / 1e6:.2f}M parameters, SFT on tiny-calc tool-use demonstrations "
           f"({args.tools_sft_steps} steps, {ctx.sft_seconds:.0f} s, untimed); calc environment, 2 prompts x "
-          f"{ctx.group} episodes per step, <= 3 turns x 48 tokens, <= 192 tokens in all; {steps} steps per run "
-          f"({rounds} run(s) each, first 2 steps excluded)")
+          f"{ctx.group} episodes per step, <= 3 turns x 48 tokens, <= 192 tokens in all; {ctx.steps} steps per run "
+          f"({1 if args.quick else 2} run(s) each, first 2 steps excluded)")
+    return dict(_run_tools(ctx, args, "posttrain grpo grpo.env=calc", "fp32"), sft_steps=args.tools_sft_steps,
+                sft_seconds=ctx.sft_seconds)
+
+
+def _run_tools(ctx, args, ours_label: str, precision: str) -> dict:
+    """Alternate the two sides of a `_tools_setup`, print the step times, the per-episode work and the per-token
+    ratio; TRL's refusal is printed instead of a ratio."""
+    import traceback
+
+    steps = ctx.steps
+    rounds = 1 if args.quick else 2
     if ctx.trl_error is not None:
         _trl_missing(ctx.trl_error)
         t, work = ctx.runners["posttrain"]()
         print(f"ours: {statistics.median(t):.3f} s/step ({work})")
         ctx.cleanup()
         return dict(ours_s_per_step=statistics.median(t), ours_work=work)
-    print(f"TRL's supports_tool_calling: the preset's own chat template {ctx.template_check['preset']}, "
-          f"TOOL_CHAT_TEMPLATE {ctx.template_check['tools']}; prompts: the same {ctx.prompt_tokens:.0f} token ids on "
-          "both sides (asserted)")
+    print(f"TRL's supports_tool_calling: the model's own chat template {ctx.template_check['preset']}, the tool "
+          f"template {ctx.template_check['tools']}; prompts: the same {ctx.prompt_tokens:.0f} token ids on both sides "
+          "(asserted)")
     t_ours, t_trl, w_ours, w_trl = [], [], [], []
     try:
         for _ in range(rounds):  # alternate, so drifting load hits both
@@ -1863,15 +2061,16 @@ def bench_tools(args) -> dict:
         why = f"{type(e).__name__} at {where}: {str(e).splitlines()[0] if str(e) else ''}"
         mo = statistics.median(t_ours)
         print(f"TRL's GRPOTrainer cannot run this tool-calling step here, so no ratio: {why}")
-        print(f"{'posttrain grpo grpo.env=calc':<58} {mo:>7.3f} s/step")
+        print(f"{ours_label:<58} {mo:>7.3f} s/step")
         ctx.cleanup()
         return dict(ours_s_per_step=mo, ours_work=w_ours[0], trl_error=why)
     mo, mt = statistics.median(t_ours), statistics.median(t_trl)
     wo = {k: statistics.mean(w[k] for w in w_ours) for k in w_ours[0]}
     wt = {k: statistics.mean(w[k] for w in w_trl) for k in w_trl[0]}
+    trl_label = f"TRL GRPOTrainer tools=[calculator] ({precision}, no grad. ckpt)"
     print(f"{'implementation':<58} {'s/step':>7} {'ratio':>7}")
-    print(f"{'TRL GRPOTrainer tools=[calculator] (fp32, no grad. ckpt)':<58} {mt:>7.3f} {mt / mo:>6.2f}x")
-    print(f"{'posttrain grpo grpo.env=calc':<58} {mo:>7.3f} {'1.00x':>7}")
+    print(f"{trl_label:<58} {mt:>7.3f} {mt / mo:>6.2f}x")
+    print(f"{ours_label:<58} {mo:>7.3f} {'1.00x':>7}")
     print(f"posttrain phases (medians): sample {wo['sample']:.3f} s, score {wo['score']:.3f} s, update "
           f"{wo['train']:.3f} s")
     print("per episode (means over the timed steps; TRL's turns: runs of sampled tokens in its completion, its valid "
@@ -1890,9 +2089,8 @@ def bench_tools(args) -> dict:
     for line in TOOLS_UNEQUAL:
         print(f"  - {line}")
     ctx.cleanup()
-    return dict(steps_per_run=steps, rounds=rounds, sft_steps=args.tools_sft_steps, sft_seconds=ctx.sft_seconds,
-                ours_s_per_step=mo, trl_s_per_step=mt, ratio=mt / mo, ours_work=wo, trl_work=wt,
-                ms_per_token=per_token, ratio_per_token=per_token["trl"] / per_token["posttrain"],
+    return dict(steps_per_run=steps, rounds=rounds, ours_s_per_step=mo, trl_s_per_step=mt, ratio=mt / mo,
+                ours_work=wo, trl_work=wt, ms_per_token=per_token, ratio_per_token=per_token["trl"] / per_token["posttrain"],
                 ours_times=t_ours, trl_times=t_trl, template_check=ctx.template_check)
 
 
@@ -1940,6 +2138,10 @@ def main(argv=None) -> int:
     ap.add_argument("--real", type=Path, default=Path(__file__).resolve().parents[1] / "models" / "smollm2-135m-instruct",
                     help="model directory of the real section (default models/smollm2-135m-instruct)")
     ap.add_argument("--real-batches", default="1,16,32", help="comma-separated batch sizes (real)")
+    ap.add_argument("--real-parts", default="engine,step,trainers,tools",
+                    help="comma-separated parts of the real section: engine (tok/s, weight bandwidth), step (one "
+                         "training step and the log-prob step), trainers (SFT, DPO, GRPO vs TRL), tools (multi-turn "
+                         "GRPO with the calculator vs TRL); default all")
     ap.add_argument("--real-bf16", choices=["auto", "yes", "no"], default="auto",
                     help="the real section's bf16 rows: auto (only where bf16 is native and faster, as "
                          "run.mixed_precision=auto decides; emulated bf16 makes them 2-5x slower than fp32 and "
@@ -1955,6 +2157,10 @@ def main(argv=None) -> int:
         ap.error(f"unknown preset(s) {unknown}; choose from {sorted(PRESETS)}")
     args.batches = [int(b) for b in args.batches.split(",") if b]
     args.real_batches = [int(b) for b in args.real_batches.split(",") if b]
+    args.real_parts = [p for p in args.real_parts.split(",") if p]
+    bad = set(args.real_parts) - {"engine", "step", "trainers", "tools"}
+    if bad:
+        ap.error(f"--real-parts: unknown part(s) {sorted(bad)}; choose from engine, step, trainers, tools")
     args.repeats = args.repeats or (5 if args.quick else 9)
     torch.set_num_threads(args.threads)
     from transformers import logging as hf_logging

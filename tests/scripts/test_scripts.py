@@ -120,6 +120,53 @@ def test_bench_tools_template_and_parser_keep_the_calc_call_format():
     assert "tool_calls" not in parsed(bad) and parse_tool_calls(bad)[0].error.startswith("malformed")
 
 
+SMOLLM2_CHATML = ("{% for message in messages %}{% if loop.first and messages[0]['role'] != 'system' %}"
+                  "{{ '<|im_start|>system\nYou are a helpful AI assistant named SmolLM, trained by Hugging "
+                  "Face<|im_end|>\n' }}{% endif %}{{'<|im_start|>' + message['role'] + '\n' + message['content'] + "
+                  "'<|im_end|>' + '\n'}}{% endfor %}{% if add_generation_prompt %}{{ '<|im_start|>assistant\n' }}"
+                  "{% endif %}")  # SmolLM2-135M-Instruct's chat template (chat_template.jinja of the import)
+
+
+def test_bench_chatml_tool_template_renders_episodes_as_smollm2_does():
+    """The real tools rows' premise: CHATML_TOOL_TEMPLATE renders a calc-words conversation (with and without a
+    system message) exactly as SmolLM2's ChatML does, and TRL's structured tool-calling turn as our episode's text;
+    TRL accepts it; the ChatML response template parses a call and an answer back."""
+    pytest.importorskip("trl")
+    from trl.chat_template_utils import is_chat_template_prefix_preserving, parse_response, supports_tool_calling
+
+    from posttrain.models import train_tokenizer
+    from posttrain.tasks import wordcalc
+    from posttrain.verifiers.envs import format_tool_call
+    from posttrain.verifiers.envs.calc import calculator
+
+    bench = _load(SCRIPTS / "bench.py")
+    tok = train_tokenizer(["Nora collected 1068 pencils. calculator expression 1743"] * 20, vocab_size=300,
+                          split_digits=True, chat=True)
+    tok.add_special_tokens({"additional_special_tokens": ["<|im_start|>", "<|im_end|>"]})
+    tok.eos_token = "<|im_end|>"
+    row = wordcalc.make_examples(1, 0, "eval")[0]
+    messages = row["messages"]  # system (tools), user, assistant call, tool, assistant answer
+    expr = row["meta"]["expression"]
+    call = {"type": "function", "function": {"name": "calculator", "arguments": {"expression": expr}}}
+    as_call = messages[:2] + [{"role": "assistant", "content": "", "tool_calls": [call]}] + messages[3:]
+    tok.chat_template = SMOLLM2_CHATML
+    own = [tok.apply_chat_template(m, tokenize=False) for m in (messages, messages[1:])]
+    assert not supports_tool_calling(tok)
+    tok.chat_template = bench.CHATML_TOOL_TEMPLATE
+    assert [tok.apply_chat_template(m, tokenize=False) for m in (messages, messages[1:])] == own
+    assert tok.apply_chat_template(as_call, tokenize=False) == own[0]
+    assert supports_tool_calling(tok) and is_chat_template_prefix_preserving(tok)
+    tok.response_template = bench.tool_response_template(tok.eos_token, "<|im_start|>assistant\n")
+    prefix = tok.apply_chat_template(messages[:2], tokenize=True, add_generation_prompt=True, return_dict=False)
+
+    def parsed(s: str) -> dict:
+        return parse_response(tok, tok(s + tok.eos_token, add_special_tokens=False)["input_ids"], prefix=prefix,
+                              tools=[calculator])
+
+    assert parsed(format_tool_call("calculator", {"expression": expr}))["tool_calls"] == [call]
+    assert parsed("The answer is 1743.") == {"role": "assistant", "content": "The answer is 1743."}
+
+
 def test_test_margins_summarizes_each_check_by_its_worst_run():
     margins = _load(SCRIPTS / "test_margins.py")
     checks = [{"test": "tests/a.py::test_x", "check": "reward rise", "op": ">", "bound": 0.1, "value": v,
