@@ -194,7 +194,7 @@ def stream_gbs(repeats: int, device: str = "cpu", dtype: torch.dtype = torch.flo
 def real_limits(args) -> dict:
     """This machine's limits on this run's threads, measured in the same run as the stages they are compared with:
     the matmul rate (2048^3, fp32 and, with the bf16 rows, bf16) and the weight-streaming bandwidth (stream_gbs)."""
-    n = 1024 if args.quick else 2048
+    n = 2048  # ~1 s in all; a smaller matrix understates the rate
     dtypes = {"fp32": torch.float32, **({"bf16": torch.bfloat16} if args.bf16_rows else {})}
     out = {p: {"matmul_gflops": matmul_gflops(n, 10, args.device, d), "stream_gbs": stream_gbs(10, args.device, d)}
            for p, d in dtypes.items()}
@@ -204,13 +204,15 @@ def real_limits(args) -> dict:
     return out
 
 
-def token_flops(model, tokens: float, passes: float = 3.0) -> float:
-    """2 * N * tokens * passes: the "6N" rule with passes=3 (forward + backward), 1 for a forward alone; N counts
-    the blocks and the output head (d x V, run at every position here); attention's quadratic term is left out
-    (rows of ~100-300 tokens: a few % of the work), so the fractions slightly understate the work done."""
+def token_flops(model, tokens: float, head_tokens: float | None = None, passes: float = 3.0) -> float:
+    """2 * N * tokens * passes: the "6N" rule with passes=3 (forward + backward), 1 for a forward alone. The blocks
+    run at every token; the output head (d x V) at `head_tokens` (the positions whose log-prob is needed; default
+    every token). Attention's quadratic term is left out (rows of ~100-300 tokens: a few % of the work), so the
+    fractions slightly understate the work done; so does a side that runs the head at more positions than needed."""
     cfg = model.config
-    n = sum(p.numel() for p in model.model.layers.parameters()) + cfg.hidden_size * cfg.vocab_size
-    return 2.0 * n * tokens * passes
+    n_block = sum(p.numel() for p in model.model.layers.parameters())
+    head = cfg.hidden_size * cfg.vocab_size * (tokens if head_tokens is None else head_tokens)
+    return 2.0 * (n_block * tokens + head) * passes
 
 
 def _of_peak(flops: float, seconds: float, limits: dict, precision: str) -> str:
@@ -1537,7 +1539,7 @@ def _real_logprob_step(args, model, limits: dict) -> dict:
         name = f"{'lean' if lean else 'HF'} {'bf16 autocast' if bf16 else 'fp32'}"
         err = float((lps[(lean, bf16)] - ref).abs().max())
         print(f"  {name:<18} {med[(lean, bf16)]:6.2f} s   max |log-prob - lean fp32's| {err:.2e}   "
-              f"{_of_peak(token_flops(model, float(am.sum())), med[(lean, bf16)], limits, 'bf16' if bf16 else 'fp32')}")
+              f"{_of_peak(token_flops(model, float(am.sum()), float(cm.sum())), med[(lean, bf16)], limits, 'bf16' if bf16 else 'fp32')}")
         out[name] = {"s": med[(lean, bf16)], "times": times[(lean, bf16)], "max_abs_logprob_diff": err}
     del m
     gc.collect()
@@ -1572,9 +1574,10 @@ def _real_trainers(args, limits: dict, parts: set) -> dict:
                      f"DPO, {ctx.B} pairs x {ctx.tokens / (ctx.S * ctx.B):.0f} tok")
             p = "bf16" if bf16 else "fp32"
             row(label, p, mt, mo, dict(times=times, tokens=ctx.tokens, steps=ctx.S))
-            # SFT: forward + backward of every token; DPO: the same for chosen and rejected, plus the reference
-            # forward over them (another third)
-            flops = token_flops(_real_base(args)[1], ctx.tokens / ctx.S, 3.0 if stage == "sft" else 4.0)
+            # the policy's forward + backward over every token (SFT: the head at the loss's tokens; DPO: chosen and
+            # rejected, the head everywhere); a reference forward, where a side runs one each step, is on top
+            flops = token_flops(_real_base(args)[1], ctx.tokens / ctx.S,
+                                ctx.loss_tokens / ctx.S if stage == "sft" else None)
             print(f"  achieved: ours {_of_peak(flops, mo, limits, p)}; TRL {_of_peak(flops, mt, limits, p)}",
                   flush=True)
             ctx.cleanup()
