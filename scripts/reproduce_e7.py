@@ -61,7 +61,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from stage_runner import run_stage  # noqa: E402  (scripts/, this file's folder)
+from stage_runner import prepare, run_stage  # noqa: E402  (scripts/, this file's folder)
 
 KS = (1, 4, 16)  # samples per problem for best-of-K / majority vote
 N_SAMPLES = max(KS)  # samples drawn per problem; every K is estimated from these
@@ -698,25 +698,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="config override passed to both stages, e.g. grpo.max_steps=100 (repeatable)")
     ap.add_argument("--fresh", action="store_true", help="redo the SFT and GRPO runs even when they exist in --out")
     args = ap.parse_args(argv)
-    for o in args.overrides:
-        if "=" not in o or "." not in o.split("=", 1)[0]:
-            raise SystemExit(f"reproduce_e7: --set {o!r} must look like stage.key=value (e.g. grpo.max_steps=100)")
     mode = MODES[args.model]
-    out = (args.out or ROOT / "runs" / ("e7" + ("-real" if mode.name == "real" else "")
-                                         + ("-quick" if args.quick else ""))).resolve()
-    if args.fresh and out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
-    import datasets
-    import transformers
-
-    datasets.disable_progress_bars()
-    transformers.utils.logging.set_verbosity_error()
-    transformers.utils.logging.disable_progress_bar()
+    out = prepare(args, "reproduce_e7", ROOT / "runs" / ("e7" + ("-real" if mode.name == "real" else "")
+                                                       + ("-quick" if args.quick else "")))
 
     from posttrain.cli import STAGES
     from posttrain.config import resolve

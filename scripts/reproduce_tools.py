@@ -48,7 +48,7 @@ sys.path.insert(0, str(ROOT))
 
 from reproduce_e7 import (KS, MODES, answer_key, evaluate_model, majority_correct, pass_at_k, pct,  # noqa: E402
                           read_jsonl, read_yaml)
-from stage_runner import run_stage  # noqa: E402  (scripts/, this file's folder)
+from stage_runner import prepare, run_stage  # noqa: E402  (scripts/, this file's folder)
 
 TOOLS, NO_TOOLS = "smol-tools", "smol-math"
 DIFFICULTY = 4  # word-math level 4, the smol-tools problems (the no-tool arm is set to it)
@@ -262,6 +262,13 @@ def plots(res: dict, out: Path) -> list[str]:
     import matplotlib.pyplot as plt
 
     ev, files = res["eval"], []
+
+    def save(fig, name: str) -> None:
+        fig.tight_layout()
+        fig.savefig(out / name, dpi=100)
+        plt.close(fig)
+        files.append(name)
+
     fig, ax = plt.subplots(figsize=(7.5, 4))
     names = [k for k in LABELS if k in ev]
     ax.bar(range(len(names)), [ev[k]["greedy_accuracy"] for k in names],
@@ -271,10 +278,7 @@ def plots(res: dict, out: Path) -> list[str]:
     ax.set_ylabel(f"held-out greedy accuracy ({res['eval_rows']} problems)")
     ax.set_ylim(0, 1)
     ax.set_title("Word problems with 3-4 digit numbers, SmolLM2-135M-Instruct")
-    fig.tight_layout()
-    fig.savefig(out / "tools_accuracy.png", dpi=100)
-    plt.close(fig)
-    files.append("tools_accuracy.png")
+    save(fig, "tools_accuracy.png")
 
     fig, ax = plt.subplots(figsize=(7, 4))
     for k, color in (("sft", "tab:blue"), ("grpo", "tab:red"), ("instruct", "0.5"), ("grpo_no_tools", "tab:orange")):
@@ -288,10 +292,7 @@ def plots(res: dict, out: Path) -> list[str]:
     ax.set_ylabel("held-out accuracy")
     ax.set_ylim(0, 1)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(out / "tools_best_of_k.png", dpi=100)
-    plt.close(fig)
-    files.append("tools_best_of_k.png")
+    save(fig, "tools_best_of_k.png")
 
     g = res["grpo"]
     if g["steps"]:
@@ -309,10 +310,7 @@ def plots(res: dict, out: Path) -> list[str]:
         ax.set_xlabel("GRPO step")
         ax.set_ylim(0, 1.05)
         ax.legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(out / "tools_training.png", dpi=100)
-        plt.close(fig)
-        files.append("tools_training.png")
+        save(fig, "tools_training.png")
     return files
 
 
@@ -443,24 +441,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="override for the smol-tools stages, e.g. grpo.lr=5e-5 (repeatable)")
     ap.add_argument("--fresh", action="store_true", help="redo every stage even when it exists in --out")
     args = ap.parse_args(argv)
-    for o in args.overrides:
-        if "=" not in o or "." not in o.split("=", 1)[0]:
-            raise SystemExit(f"reproduce_tools: --set {o!r} must look like stage.key=value (e.g. grpo.lr=5e-5)")
-    out = (args.out or ROOT / "runs" / ("tools" + ("-quick" if args.quick else ""))).resolve()
-    if args.fresh and out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
-    import datasets
-    import transformers
-
-    datasets.disable_progress_bars()
-    transformers.utils.logging.set_verbosity_error()
-    transformers.utils.logging.disable_progress_bar()
-
+    out = prepare(args, "reproduce_tools", ROOT / "runs" / ("tools" + ("-quick" if args.quick else "")))
     from dataclasses import asdict
 
     from posttrain.cli import STAGES
