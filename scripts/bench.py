@@ -43,7 +43,10 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             step with the calculator, as the tools section does but on the real model: a short LoRA SFT on word-calc's
             tool-use demonstrations first (untimed, ~1 min), calc-words on word-calc's held-out problems, 2 prompts x
             8 episodes, <= 3 turns x 64 tokens, <= 256 in all, both sides with CHATML_TOOL_TEMPLATE (SmolLM2's ChatML
-            plus `tool_calls`), fp32 and bf16. ~30 min in all. The bf16
+            plus `tool_calls`), fp32 and bf16. First it measures this machine's limits in the run (matmul rate fp32
+            and bf16 at 2048^3; weight streaming, stream_gbs) and prints each engine row's weight bandwidth and each
+            training row's FLOP/s (6N, token_flops) as fractions of them. --real-parts picks parts (engine, step,
+            trainers, tools). --quick: 8 + 12 min measured (engine, step and trainers; tools). The bf16
             rows run where bf16 is native and faster (`--real-bf16 auto`, the default: what run.mixed_precision=auto
             decides); on other CPUs bf16 is emulated, 2-5x slower than fp32, and `--real-bf16 yes` forces them.
   multiturn multi-turn episodes with a tool (posttrain.rollout.multiturn; a random tiny chat model whose turns end

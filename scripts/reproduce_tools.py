@@ -274,7 +274,9 @@ def plots(res: dict, out: Path) -> list[str]:
     ax.bar(range(len(names)), [ev[k]["greedy_accuracy"] for k in names],
            color=["0.6", "0.4", "tab:blue", "tab:red", "tab:orange"][:len(names)])
     ax.set_xticks(range(len(names)), [LABELS[k].replace(" (E7 arm)", "\n(E7 arm)").replace(", ", ",\n")
-                                      for k in names], fontsize=8)
+                                      .replace(" with", "\nwith") for k in names], fontsize=8)
+    for i, k in enumerate(names):
+        ax.text(i, ev[k]["greedy_accuracy"] + 0.01, pct(ev[k]["greedy_accuracy"]), ha="center", fontsize=8)
     ax.set_ylabel(f"held-out greedy accuracy ({res['eval_rows']} problems)")
     ax.set_ylim(0, 1)
     ax.set_title("Word problems with 3-4 digit numbers, SmolLM2-135M-Instruct")
