@@ -140,6 +140,20 @@ def majority_correct(votes: list[tuple[str | None, bool]]) -> float:
     return sum(key in right for key in leaders) / len(leaders)
 
 
+def k_metrics(per_problem: list[list[tuple[str | None, bool]]], n: int) -> dict:
+    """pass@K (unbiased, from the n samples of each problem: (answer key, right?) pairs) for K = 1..n, and maj@K
+    (disjoint groups of K) for K in KS up to n."""
+    ks = [k for k in KS if k <= n]
+    curve = [sum(pass_at_k(n, sum(ok for _, ok in p), k) for p in per_problem) / len(per_problem)
+             for k in range(1, n + 1)]
+    maj = {}
+    for k in ks:
+        groups = [p[i:i + k] for p in per_problem for i in range(0, n, k)]
+        maj[k] = sum(majority_correct(g) for g in groups) / len(groups)
+    return {"samples_per_problem": n, "sample_accuracy": curve[0], "pass_at_k": {k: curve[k - 1] for k in ks},
+            "pass_curve": curve, "maj_at_k": maj}
+
+
 def answer_key(verdict) -> str | None:
     """The verifier's normalised extracted answer (what majority voting compares), None when there is none."""
     d = verdict.details or {}
@@ -186,12 +200,8 @@ def evaluate_model(model_dir: Path, rows: list[dict], max_new_tokens: int, pool,
     for r, v in zip(samples, s_verdicts):
         per_problem[r.prompt_index].append((answer_key(v), v.score >= 1.0))
     n = N_SAMPLES
-    pass_curve = [sum(pass_at_k(n, sum(ok for _, ok in p), k) for p in per_problem) / len(rows)
-                  for k in range(1, n + 1)]
-    maj = {}
-    for k in KS:
-        groups = [p[i:i + k] for p in per_problem for i in range(0, n, k)]
-        maj[k] = sum(majority_correct(g) for g in groups) / len(groups)
+    km = k_metrics(per_problem, n)
+    pass_curve, maj = km["pass_curve"], km["maj_at_k"]
     g_len = [len(r.completion_ids) for r in greedy]
     s_len = [len(r.completion_ids) for r in samples]
     n_right = [sum(ok for _, ok in p) for p in per_problem]

@@ -46,8 +46,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from reproduce_e7 import (KS, MODES, answer_key, evaluate_model, majority_correct, pass_at_k, pct,  # noqa: E402
-                          read_jsonl, read_yaml)
+from reproduce_e7 import (KS, MODES, answer_key, evaluate_model, k_metrics, pct, read_jsonl,  # noqa: E402
+                          read_yaml)
 from stage_runner import prepare, run_stage  # noqa: E402  (scripts/, this file's folder)
 
 TOOLS, NO_TOOLS = "smol-tools", "smol-math"
@@ -190,23 +190,10 @@ def evaluate_episodes(model_dir: Path, problems: list[dict], env, samples: int, 
             key = answer_key(check(ep["turns"][-1]["text"], refs[r.prompt_index])) \
                 if ep["finish"] == "answer" and ep["turns"] else None
             per_problem[r.prompt_index].append((key, r.reward >= 1.0))
-        out.update(_k_metrics(per_problem, samples))
+        out.update(k_metrics(per_problem, samples))
         out["behaviour_samples"] = behaviour([r.extras["episode"] for r in sampled], check)
         out["sample_tokens_per_sample"] = sum(len(r.completion_ids) for r in sampled) / len(sampled)
     return out
-
-
-def _k_metrics(per_problem: list[list[tuple[str | None, bool]]], n: int) -> dict:
-    """pass@K (unbiased, from n samples) and maj@K (disjoint groups of K) for K in KS up to n."""
-    ks = [k for k in KS if k <= n]
-    curve = [sum(pass_at_k(n, sum(ok for _, ok in p), k) for p in per_problem) / len(per_problem)
-             for k in range(1, n + 1)]
-    maj = {}
-    for k in ks:
-        groups = [p[i:i + k] for p in per_problem for i in range(0, n, k)]
-        maj[k] = sum(majority_correct(g) for g in groups) / len(groups)
-    return {"samples_per_problem": n, "sample_accuracy": curve[0], "pass_at_k": {k: curve[k - 1] for k in ks},
-            "pass_curve": curve, "maj_at_k": maj}
 
 
 def _examples(eps: list[dict], refs: list[str], causes: list[str], problems: list[dict]) -> dict[str, list]:

@@ -453,7 +453,7 @@ def test_tools_report_names_why_each_episode_failed():
     assert b["ignores_last_result"] == pytest.approx(1 / 4)  # right, ignored, wrong_expr, recovered have a result
     assert b["sampled_tokens"] == pytest.approx(10 * 14 / 7) and b["env_tokens"] == pytest.approx(4 * 8 / 7)
     # the K metrics: 2 problems x 4 samples; pass@1 = mean right share; maj@4 by majority of answer keys
-    k = tools._k_metrics([[("5", True), ("5", True), ("6", False), (None, False)],
+    k = tools.k_metrics([[("5", True), ("5", True), ("6", False), (None, False)],
                           [("7", False), ("7", False), ("8", True), ("9", False)]], 4)
     assert k["pass_at_k"] == {1: pytest.approx((2 / 4 + 1 / 4) / 2), 4: 1.0} and k["maj_at_k"][4] == 0.5
 
