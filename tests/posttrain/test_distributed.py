@@ -27,6 +27,10 @@ def _run(cmd: list[str], cwd: Path) -> str:
     return r.stdout
 
 
+# `python -m accelerate.commands.launch ...` for two CPU processes, and the one- and two-process runs of a command
+TWO_PROCESSES = ["-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes", "2", "--num_machines", "1",
+                 "--mixed_precision", "no", "--dynamo_backend", "no"]
+LAUNCHES = (("one", []), ("two", TWO_PROCESSES))
 ENVS_FILE = Path(__file__).resolve().parent / "envs_for_tests.py"
 
 
@@ -43,9 +47,7 @@ def _env_runs(tmp_path: Path, tiny_lm, stage: str, args: list[str], key: str) ->
     sft = envs.eos_pulled_copy(tiny_lm("tiny-calc", vocab_size=320, max_length=256, split_digits=True, chat=True),
                                tmp_path / "sft")
     runs = {}
-    for name, launch in (("one", []), ("two", ["-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes",
-                                              "2", "--num_machines", "1", "--mixed_precision", "no",
-                                              "--dynamo_backend", "no"])):
+    for name, launch in LAUNCHES:
         out = tmp_path / name
         shutil.copytree(sft, out / "tiny-calc" / "sft" / "final")
         text = _run([sys.executable, *launch, "-m", "posttrain", stage, *args, f"run.output_dir={out}"], tmp_path)
@@ -78,9 +80,7 @@ def test_two_processes_match_one_process_loss_curve(tmp_path):
     out = tmp_path / "runs"
     one = _run([sys.executable, "-m", "posttrain", "sft", *ARGS, f"run.output_dir={out}"], tmp_path)
     assert "1 process(es)" in one
-    two = _run([sys.executable, "-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes", "2",
-                "--num_machines", "1", "--mixed_precision", "no", "--dynamo_backend", "no",
-                "-m", "posttrain", "sft", *ARGS, f"run.output_dir={out}"], tmp_path)
+    two = _run([sys.executable, *TWO_PROCESSES, "-m", "posttrain", "sft", *ARGS, f"run.output_dir={out}"], tmp_path)
     assert "2 process(es)" in two, two[-2000:]
     single = _losses(out / "tiny-summarize" / "sft.prev")
     double = _losses(out / "tiny-summarize" / "sft")
@@ -137,9 +137,7 @@ def test_ppo_two_processes_match_one_process(tmp_path, tiny_lm, tiny_rm):
 
     world = {"sft": tiny_lm("tiny-summarize"), "rm": tiny_rm("tiny-summarize")}  # the world of trainers/test_ppo.py
     runs = {}
-    for name, launch in (("one", []), ("two", ["-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes",
-                                              "2", "--num_machines", "1", "--mixed_precision", "no",
-                                              "--dynamo_backend", "no"])):
+    for name, launch in LAUNCHES:
         out = tmp_path / name
         (out / "tiny-summarize" / "sft").mkdir(parents=True)
         shutil.copytree(world["sft"], out / "tiny-summarize" / "sft" / "final")  # never runs SFT
@@ -202,9 +200,7 @@ def test_grpo_two_processes_match_one_process(tmp_path, tiny_lm):
             "minibatches=2", "micro_batch_size=2", "zero_variance=resample", "max_resample_rounds=2", "lr=1e-3",
             "eval_every=0", "eval_rows=4", "final_eval_rows=4", "save_every=3", "task.n_train=64", "task.n_eval=16"]
     runs = {}
-    for name, launch in (("one", []), ("two", ["-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes",
-                                              "2", "--num_machines", "1", "--mixed_precision", "no",
-                                              "--dynamo_backend", "no"])):
+    for name, launch in LAUNCHES:
         out = tmp_path / name
         shutil.copytree(sft, out / "tiny-countdown" / "sft" / "final")  # never runs SFT
         text = _run([sys.executable, *launch, "-m", "posttrain", "grpo", *args, f"run.output_dir={out}"], tmp_path)
@@ -287,9 +283,7 @@ def test_distill_two_processes_match_one_process(tmp_path, tiny_lm):
             "prompts_per_step=3", "group_size=2", "max_new_tokens=12", "max_steps=3", "micro_batch_size=1", "lr=1e-3",
             "eval_every=0", "eval_rows=4", "final_eval_rows=4", "save_every=3", "task.n_train=64", "task.n_eval=16"]
     runs = {}
-    for name, launch in (("one", []), ("two", ["-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes",
-                                              "2", "--num_machines", "1", "--mixed_precision", "no",
-                                              "--dynamo_backend", "no"])):
+    for name, launch in LAUNCHES:
         out = tmp_path / name
         shutil.copytree(sft, out / "tiny-countdown" / "sft" / "final")  # never runs SFT
         text = _run([sys.executable, *launch, "-m", "posttrain", "distill", *args, f"run.output_dir={out}"], tmp_path)
