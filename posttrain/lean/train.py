@@ -22,11 +22,14 @@ faster (figures in RESULTS.md):
 - RoPE as one complex multiply (`support.rope_pair_order` / `rope_cis`): the q/k weight rows (and
   biases) are permuted to interleaved pairs by an `index_select` on the parameters every call
   (differentiable), the (N, D/2) factors computed once per call.
-- RMSNorm weights folded into the weight of each following projection (`W * w`, differentiable): one
-  activation-sized multiply fewer per norm.
+- RMSNorm weights folded into the weight of each following projection (`W * w`, differentiable) when a call
+  has more tokens than those projections have rows (`_normed`): one activation-sized multiply fewer per norm;
+  with fewer tokens (a real model's short batches) the weight multiplies the activations, as in HF, since
+  weight-sized products (and their backward) then cost more than the activations' (measured on SmolLM2).
 - Attention: `F.scaled_dot_product_attention` with `is_causal` when nothing is padded, else one boolean
   (B, 1, T, T) mask built once per call (pad queries see themselves, so no softmax row is empty). GQA
-  through `enable_gqa`.
+  through `enable_gqa`. Under bf16 autocast on a CPU with at most EXPLICIT_ATTENTION_MAX_KEYS keys: explicit
+  matmuls with an fp32 softmax instead (`_sdpa`), as the CPU kernel is 2-3x slower in bf16 at those lengths.
 - q/k/v and gate/up NOT fused into one matmul (slower on CPU at these sizes; the split's backward is a cat).
 - Logits only for the columns the caller needs (`positions`), and `token_logprobs_fused`: log p(target)
   and the entropy from one softmax pass, with a backward that is one multiply plus a scatter; the
@@ -44,7 +47,8 @@ faster (figures in RESULTS.md):
   SmolLM2 with native bf16 a GRPO-like forward + backward is faster than lean fp32 and than the HF forward
   under the same autocast (measured: RESULTS.md, "Lean forwards" and "Figures once kept in code comments").
 - Not kept: a vector_norm/hypot RMSNorm (as `LeanLlama`; barely faster, more rounding), explicit-matmul
-  attention (slower; its backward keeps the (B, H, T, T) probabilities), a flip-based rotate_half.
+  attention in fp32 (no faster than the kernel; its backward keeps the (B, H, T, T) probabilities), a flip-based
+  rotate_half.
 
 Switch: `posttrain.lean.support.ENABLED = False`, or POSTTRAIN_LEAN_TRAIN=0 in the environment, makes
 `sequence_logprobs` and the reward / value forwards always use the model's own forward.
@@ -96,6 +100,17 @@ def _rms(x: torch.Tensor, eps: float) -> torch.Tensor:
     return x * torch.rsqrt(x.pow(2).mean(-1, keepdim=True) + eps)
 
 
+def _normed(x: torch.Tensor, norm, weights: tuple) -> tuple[torch.Tensor, tuple]:
+    """RMSNorm `norm` of x (N, d) for the projections `weights` that read it: its weight g multiplies either the
+    activations (x_normed * g, N x d products, as HF does) or, when there are more tokens than the projections have
+    rows, each following weight (W * g: one activation-sized multiply fewer, forward and backward). Returns
+    (the input of the projections, their weights)."""
+    h, g = _rms(x, norm.variance_epsilon), norm.weight
+    if x.shape[0] > sum(w.shape[0] for w in weights):
+        return h, tuple(w * g for w in weights)
+    return h * g, weights
+
+
 def _dims(model):
     cfg = model.config
     H = cfg.num_attention_heads
@@ -129,22 +144,20 @@ def _decoder(model, x: torch.Tensor, cis: torch.Tensor, attend) -> torch.Tensor:
     perm_q, perm_k = _perm(H, D, x.device), _perm(Hkv, D, x.device)
     for layer in model.model.layers[:cfg.num_hidden_layers]:
         a, m = layer.self_attn, layer.mlp
-        g1 = layer.input_layernorm.weight
-        h = _rms(x, layer.input_layernorm.variance_epsilon)  # (N, d)
+        h, (wq, wk, wv) = _normed(x, layer.input_layernorm, (a.q_proj.weight, a.k_proj.weight, a.v_proj.weight))
         bq, bk = a.q_proj.bias, a.k_proj.bias
-        q = F.linear(h, (a.q_proj.weight * g1).index_select(0, perm_q),
+        q = F.linear(h, wq.index_select(0, perm_q),
                      None if bq is None else bq.index_select(0, perm_q))  # (N, H*D), pairs interleaved
-        k = F.linear(h, (a.k_proj.weight * g1).index_select(0, perm_k),
+        k = F.linear(h, wk.index_select(0, perm_k),
                      None if bk is None else bk.index_select(0, perm_k))  # (N, Hkv*D)
-        v = F.linear(h, a.v_proj.weight * g1, a.v_proj.bias)  # (N, Hkv*D)
+        v = F.linear(h, wv, a.v_proj.bias)  # (N, Hkv*D)
         # RoPE in fp32 (bf16 under autocast: there is no complex bf16); the attention casts back
         q = torch.view_as_real(torch.view_as_complex(q.float().view(N, H, D // 2, 2)) * cis).view(N, H, D)
         k = torch.view_as_real(torch.view_as_complex(k.float().view(N, Hkv, D // 2, 2)) * cis).view(N, Hkv, D)
         x = x + F.linear(attend(q, k, v.view(N, Hkv, D)), a.o_proj.weight, a.o_proj.bias)
-        g2 = layer.post_attention_layernorm.weight
-        h = _rms(x, layer.post_attention_layernorm.variance_epsilon)
-        gate = F.linear(h, m.gate_proj.weight * g2, m.gate_proj.bias)  # (N, I)
-        up = F.linear(h, m.up_proj.weight * g2, m.up_proj.bias)
+        h, (wg, wu) = _normed(x, layer.post_attention_layernorm, (m.gate_proj.weight, m.up_proj.weight))
+        gate = F.linear(h, wg, m.gate_proj.bias)  # (N, I)
+        up = F.linear(h, wu, m.up_proj.bias)
         x = x + F.linear(F.silu(gate) * up, m.down_proj.weight, m.down_proj.bias)
     return x
 
@@ -160,11 +173,34 @@ def lean_logits(model, x: torch.Tensor, temperature: float = 1.0) -> torch.Tenso
     return F.linear(_rms(x, base.norm.variance_epsilon) * gf, head.weight, hb)
 
 
+# Keys per query up to which bf16 attention on a CPU runs as explicit matmuls (`_sdpa`) instead of
+# F.scaled_dot_product_attention, whose CPU flash kernel in bf16 is 2-3x slower forward + backward at these
+# lengths (SmolLM2 shapes, Zen 4: RESULTS.md, "Training at the matrix units' speed"); past it the kernel wins.
+EXPLICIT_ATTENTION_MAX_KEYS = 256
+
+
 def _sdpa(model, q, k, v, allowed):
-    """q (B, H, Tq, D), k/v (B, Hkv, Tk, D), allowed (B, 1, Tq, Tk) bool or None (causal) -> (B, H, Tq, D)."""
-    H, Hkv, _, scale = _dims(model)
-    return F.scaled_dot_product_attention(q, k, v, attn_mask=allowed, is_causal=allowed is None, scale=scale,
-                                          enable_gqa=Hkv != H)
+    """q (B, H, Tq, D), k/v (B, Hkv, Tk, D), allowed (B, 1, Tq, Tk) bool or None (causal) -> (B, H, Tq, D).
+
+    Under bf16 autocast on a CPU with at most EXPLICIT_ATTENTION_MAX_KEYS keys: explicit matmuls, each kv head's
+    G = H / Hkv query heads stacked into one (G*Tq, D) matrix (no repeated k / v), the scores masked with an
+    additive -inf bias and soft-maxed in fp32, as the HF eager attention does; else the fused kernel."""
+    H, Hkv, D, scale = _dims(model)
+    B, _, Tq, _ = q.shape
+    Tk = k.shape[2]
+    if (q.device.type != "cpu" or Tk > EXPLICIT_ATTENTION_MAX_KEYS
+            or _autocast_dtype(q.device) != torch.bfloat16):
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=allowed, is_causal=allowed is None, scale=scale,
+                                              enable_gqa=Hkv != H)
+    G = H // Hkv
+    if allowed is None:  # causal: query i (the last Tq of Tk columns) sees keys <= Tk - Tq + i
+        allowed = torch.ones(Tq, Tk, dtype=torch.bool, device=q.device).tril_(Tk - Tq)
+    else:
+        allowed = allowed[:, :, None]  # (B, 1, 1, Tq, Tk): the same for every head
+    bias = torch.zeros(allowed.shape, device=q.device).masked_fill_(~allowed, float("-inf"))
+    s = (q.reshape(B, Hkv, G * Tq, D) @ k.transpose(-1, -2)).view(B, Hkv, G, Tq, Tk)  # bf16
+    p = torch.softmax(s.float() * scale + bias, -1).view(B, Hkv, G * Tq, Tk)  # fp32
+    return (p @ v).view(B, H, Tq, D)  # bf16 (autocast casts p)
 
 
 def _rows_forward(model, input_ids: torch.Tensor, attention_mask: torch.Tensor | None,

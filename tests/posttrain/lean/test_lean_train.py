@@ -654,3 +654,69 @@ def test_the_chunked_head_never_keeps_logits_for_the_backward(monkeypatch):
     assert max(fused) >= N * big  # the fused head keeps the softmax
     assert max(chunked) <= big * 32, (max(chunked), N * big)  # the head weight is the largest thing kept
     torch.testing.assert_close(lp_chunked, lp_fused, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("tokens", [8, 400])  # fewer / more tokens than the projections' rows (192 here)
+def test_the_norm_weight_on_the_activations_or_folded_into_the_weights_gives_the_same_numbers(tokens):
+    """`_normed` multiplies the RMSNorm weight into the activations (few tokens) or into each following weight
+    (many tokens); either way the projections' outputs and every gradient equal HF's (x_normed * g) @ W.T."""
+    g = torch.Generator().manual_seed(0)
+    norm = nn.Module()
+    norm.weight = nn.Parameter(1 + 0.3 * torch.randn(16, generator=g))
+    norm.variance_epsilon = 1e-6
+    ws = [nn.Parameter(torch.randn(rows, 16, generator=g)) for rows in (96, 96)]
+    x = torch.randn(tokens, 16, generator=g, requires_grad=True)
+    up = torch.randn(tokens, 96, generator=g)
+
+    def run(lean: bool):
+        for p in (norm.weight, x, *ws):
+            p.grad = None
+        if lean:
+            h, w2 = lean_train._normed(x, norm, tuple(ws))
+            assert (w2[0] is ws[0]) == (tokens <= 192)  # folded only past the rows
+        else:
+            h, w2 = lean_train._rms(x, 1e-6) * norm.weight, ws
+        out = sum((torch.nn.functional.linear(h, w) * up).sum() for w in w2)
+        out.backward()
+        return out.detach(), [p.grad.clone() for p in (norm.weight, x, *ws)]
+
+    (o1, g1), (o0, g0) = run(True), run(False)
+    torch.testing.assert_close(o1, o0, rtol=1e-5, atol=1e-3)
+    for a, b in zip(g1, g0):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4 * float(b.abs().max()))
+
+
+@pytest.mark.parametrize("shape", ["causal", "padded", "suffix"])
+def test_explicit_bf16_attention_matches_the_fused_kernel(shape, monkeypatch):
+    """Under bf16 autocast on a CPU `_sdpa` runs short attentions as explicit matmuls with an fp32 softmax; it
+    attends where F.scaled_dot_product_attention does (causal, a padding mask whose pad queries see themselves,
+    fewer queries than keys as in the shared-prefix forward, GQA), within bf16 rounding, gradients included."""
+    model = MODELS["llama-gqa-untied"]()  # 4 query heads over 2 kv heads, D = 16
+    H, Hkv, D, _ = lean_train._dims(model)
+    g = torch.Generator().manual_seed(3)
+    B, Tq, Tk = 3, (5 if shape == "suffix" else 9), 9
+    q = torch.randn(B, H, Tq, D, generator=g, requires_grad=True)
+    k = torch.randn(B, Hkv, Tk, D, generator=g, requires_grad=True)
+    v = torch.randn(B, Hkv, Tk, D, generator=g, requires_grad=True)
+    allowed = None
+    if shape != "causal":
+        valid = torch.ones(B, Tk, dtype=torch.bool)
+        valid[1, :3] = False  # row 1 left-padded
+        allowed = torch.ones(Tq, Tk, dtype=torch.bool).tril_(Tk - Tq)[None, None] & valid[:, None, None, :]
+        own = torch.ones(Tq, Tk, dtype=torch.bool).tril_(Tk - Tq) & torch.ones(Tq, Tk, dtype=torch.bool).triu_(Tk - Tq)
+        allowed = allowed | own[None, None]  # pad queries see themselves
+    w = torch.randn(B, H, Tq, D, generator=g)
+
+    def run(max_keys):
+        monkeypatch.setattr(lean_train, "EXPLICIT_ATTENTION_MAX_KEYS", max_keys)
+        for t in (q, k, v):
+            t.grad = None
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            o = lean_train._sdpa(model, q, k, v, allowed)
+        (o.float() * w).sum().backward()
+        return o.float().detach(), [t.grad.clone() for t in (q, k, v)]
+
+    (o1, g1), (o0, g0) = run(1 << 20), run(0)  # explicit, the kernel
+    torch.testing.assert_close(o1, o0, atol=3e-2, rtol=0)  # both bf16: ~2^-8 relative of values ~1
+    for a, b in zip(g1, g0):
+        assert _cosine(a, b) > 0.999
