@@ -112,13 +112,37 @@ def left_pad(seqs: Sequence[Sequence[int]], pad_id: int) -> tuple[torch.Tensor, 
 
 def pair_rewards(model, pairs, pad_id: int) -> torch.Tensor:
     """(2B,) rewards of `preferences.TokenizedPair`s (prompt + chosen, prompt + rejected): chosen rows first, then
-    rejected, in ONE forward over left-padded rows (the reward model's Bradley-Terry step; differentiable)."""
+    rejected, in ONE forward (the reward model's Bradley-Terry step; differentiable).
+
+    On the lean path (a plain Llama-family reward model, `lean_support(..., head="score")`) each pair is ONE row,
+    prompt + chosen + rejected, under the 4D mask of DPO's prefix sharing (`preferences.collate_shared_prompt`:
+    rejected never sees chosen, its positions continue from the prompt), so the prompt runs once per pair, and the
+    rewards are the head's output at each side's last token: the same numbers as two left-padded rows within fp32
+    rounding (tested). Otherwise two left-padded rows per pair through `reward_forward`."""
+    from posttrain.lean.support import lean_support
     from posttrain.models import model_device
 
+    dev = model_device(model)
+    longest = max(len(p.prompt) + len(p.chosen) + len(p.rejected) for p in pairs)
+    if lean_support(model, longest, mode="train", head="score")[0]:
+        return _shared_prompt_rewards(model, pairs, pad_id, dev)
     seqs = [p.prompt + p.chosen for p in pairs] + [p.prompt + p.rejected for p in pairs]
     input_ids, attention_mask = left_pad(seqs, pad_id)  # (2B, T), (2B, T)
-    dev = model_device(model)
     return reward_forward(model, input_ids.to(dev), attention_mask.to(dev))  # (2B,)
+
+
+def _shared_prompt_rewards(model, pairs, pad_id: int, dev) -> torch.Tensor:
+    """`pair_rewards` on the lean path: one packed row per pair (prompt once), the score at each side's last token."""
+    from posttrain.lean import train as lean
+    from posttrain.preferences import collate_shared_prompt
+
+    b = collate_shared_prompt(pairs, pad_id)
+    x = lean.lean_packed_hidden(model, b["input_ids"].to(dev), b["position_ids"].to(dev), b["allowed"].to(dev))
+    ends = torch.tensor([[len(p.prompt) + len(p.chosen) - 1, len(p.prompt) + len(p.chosen) + len(p.rejected) - 1]
+                         for p in pairs], device=dev)  # (B, 2): the last chosen and the last rejected column
+    h = lean.final_norm(model, x.gather(1, ends[..., None].expand(-1, -1, x.shape[-1])))  # (B, 2, d)
+    r = torch.nn.functional.linear(h, model.score.weight, model.score.bias)[..., 0].float()  # (B, 2)
+    return torch.cat([r[:, 0], r[:, 1]])  # (2B,) chosen, then rejected
 
 
 def load_reward_model(model_dir: str | Path, device: str | torch.device = "cpu"):

@@ -35,8 +35,9 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             32 (word-math prompts through the chat template, T=1, exactly max_new_tokens), and one training step
             (HF forward + backward + AdamW, batch 8) fp32 against bf16 autocast, and the policy update's log-prob
             forward + backward (8 rows x 124 tokens) on the lean training forward and the HF one, each fp32 and
-            under bf16 autocast; then one SFT, DPO and GRPO step of
-            ours against TRL's on it (word-math rows through the chat template; SFT / DPO batch 4, GRPO 2 prompts x
+            under bf16 autocast; then one SFT, RM, DPO and GRPO step of ours against TRL's on it (word-math rows
+            through the chat template; SFT batch 4 and 16 rows (~1.1k tokens), RM 8 pairs (a seeded one-output head
+            on the model; TRL's RewardTrainer), DPO 4 pairs, GRPO 2 prompts x
             4 x <= 64 tokens, lr 1e-7 so that neither side's completions shrink under the length reward during
             the run; each side's mean completion length is printed), each fp32 and with bf16 on both sides (ours
             run.mixed_precision=bf16, GRPO also rollout.dtype=bfloat16; TRL bf16=True); then one multi-turn GRPO
@@ -44,8 +45,8 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             tool-use demonstrations first (untimed, ~1 min), calc-words on word-calc's held-out problems, 2 prompts x
             8 episodes, <= 3 turns x 64 tokens, <= 256 in all, both sides with CHATML_TOOL_TEMPLATE (SmolLM2's ChatML
             plus `tool_calls`), fp32 and bf16. First it measures this machine's limits in the run (matmul rate fp32
-            and bf16 at 2048^3; weight streaming, stream_gbs) and prints each engine row's weight bandwidth and each
-            training row's FLOP/s (6N, token_flops) as fractions of them. --real-parts picks parts (engine, step,
+            and bf16 at 2048^3; weight streaming, stream_gbs) and prints each engine row's weight bandwidth and
+            FLOP/s (generation_flops) and each training row's FLOP/s (6N, token_flops) as fractions of them. --real-parts picks parts (engine, step,
             trainers, tools). --quick: 8 + 12 min measured (engine, step and trainers; tools). The bf16
             rows run where bf16 is native and faster (`--real-bf16 auto`, the default: what run.mixed_precision=auto
             decides); on other CPUs bf16 is emulated, 2-5x slower than fp32, and `--real-bf16 yes` forces them.
@@ -568,9 +569,9 @@ def _trl_timed_train(make_trainer, printer, steps: int, tokens: int, args) -> fl
     return dt
 
 
-def _sft_setup(args, real: bool = False, bf16: bool = False) -> SimpleNamespace:
+def _sft_setup(args, real: bool = False, bf16: bool = False, rows: int = 4) -> SimpleNamespace:
     """Our SFT step and TRL's SFTTrainer over the same S*B rows (see the module docstring): tiny-summarize on the
-    tiny model, or (real=True) word-math rows through the chat template on the real model (--real), batch 4.
+    tiny model, or (real=True) word-math rows through the chat template on the real model (--real), batch `rows`.
     bf16: both under bf16 autocast over fp32 weights (ours run.mixed_precision=bf16, TRL bf16=True)."""
     from posttrain import loop
     from posttrain.tasks import get_task
@@ -579,14 +580,14 @@ def _sft_setup(args, real: bool = False, bf16: bool = False) -> SimpleNamespace:
 
     if real:
         tok, base = _real_base(args)
-        B, S, lr, max_len = 4, 2 if args.quick else 3, 1e-5, 512
-        rows = get_task("word-math").make_examples(S * B, 0, "train")
+        B, S, lr, max_len = rows, 2 if args.quick else 3, 1e-5, 512
+        data_rows = get_task("word-math").make_examples(S * B, 0, "train")
     else:
         B, S, lr, max_len = 16, 6 if args.quick else 16, 1e-4, 256
         tok = _summarize_tokenizer()
-        rows = get_task("tiny-summarize").make_examples(S * B, 0, "train")
+        data_rows = get_task("tiny-summarize").make_examples(S * B, 0, "train")
         base = build_model("tiny", tok, seed=0).to(args.device)
-    pairs, dropped = tokenize_completions(rows, tok, max_len)
+    pairs, dropped = tokenize_completions(data_rows, tok, max_len)
     assert not dropped and len(pairs) == S * B
     tokens = sum(len(p) + len(c) for p, c in pairs)  # non-pad tokens through the model
     loss_tokens = sum(len(c) for _, c in pairs)  # completion tokens (eos included): the loss's tokens
@@ -665,8 +666,11 @@ def bench_sft(args) -> dict:
 # ------------------------------------------------------------------ section: rm
 
 
-def _rm_setup(args) -> SimpleNamespace:
-    """Our reward-model step and TRL's RewardTrainer over the same S*B pairs (see the module docstring)."""
+def _rm_setup(args, real: bool = False, bf16: bool = False) -> SimpleNamespace:
+    """Our reward-model step and TRL's RewardTrainer over the same S*B pairs (see the module docstring).
+    real=True: the real model (--real) under a seeded one-output head, word-math pairs (chosen = the worked answer,
+    rejected = another problem's, prompts through the chat template) as DPO's real rows, batch 8 (~1.1k tokens).
+    bf16: both under bf16 autocast over fp32 weights (ours run.mixed_precision=bf16, TRL bf16=True)."""
     from posttrain import loop
     from posttrain.losses import bradley_terry_loss
     from posttrain.models import save_model
@@ -675,22 +679,34 @@ def _rm_setup(args) -> SimpleNamespace:
     from posttrain.models import load_reward_init
     from posttrain.scoring import pair_rewards
 
-    B, S, lr, max_len = 16, 6 if args.quick else 16, 1e-4, 256
-    tok = _summarize_tokenizer()
-    pad = tok.pad_token_id
-    _, pairs, _ = check_pairs(_summarize_pairs(S * B), "bench pairs", "error", tok, max_len,
-                              append_eos=rm_appends_eos(tok))
-    tokens = sum(2 * len(p.prompt) + len(p.chosen) + len(p.rejected) for p in pairs)
     tmp = tempfile.mkdtemp(prefix="posttrain-bench-rm-")
-    save_model(build_model("tiny", tok, seed=0), tok, Path(tmp) / "lm")
+    if real:
+        from posttrain.tasks import get_task
+
+        tok, _ = _real_base(args)
+        B, S, lr, max_len = 8, 2 if args.quick else 3, 1e-5, 512
+        ex = get_task("word-math").make_examples(S * B + 1, 0, "train")
+        rows = [{"prompt": ex[i]["prompt"], "chosen": ex[i]["completion"], "rejected": ex[i + 1]["completion"],
+                 "_row": i + 1} for i in range(S * B)]
+        lm_dir = args.real
+    else:
+        B, S, lr, max_len = 16, 6 if args.quick else 16, 1e-4, 256
+        tok = _summarize_tokenizer()
+        rows = _summarize_pairs(S * B)
+        lm_dir = Path(tmp) / "lm"
+        save_model(build_model("tiny", tok, seed=0), tok, lm_dir)
+    pad = tok.pad_token_id
+    _, pairs, _ = check_pairs(rows, "bench pairs", "error", tok, max_len, append_eos=rm_appends_eos(tok))
+    tokens = sum(2 * len(p.prompt) + len(p.chosen) + len(p.rejected) for p in pairs)
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):  # "new head" report
-        base = load_reward_init(Path(tmp) / "lm", pad, 0, args.device)
+        base = load_reward_init(lm_dir, pad, 0, args.device)
 
     def ours() -> float:
         model = copy.deepcopy(base)
-        accelerator = loop.setup(0)
+        accelerator = loop.setup(0, mixed_precision="bf16" if bf16 else None)
         t0 = time.perf_counter()
         optimizer = loop.build_optimizer(model, lr)
+        model, optimizer = accelerator.prepare(model, optimizer)  # as the trainer does (its autocast under bf16)
         scheduler = loop.build_scheduler(optimizer, 0, S, "constant")
         for step in range(S):
             def loss_fn(chunk):
@@ -702,8 +718,8 @@ def _rm_setup(args) -> SimpleNamespace:
         _sync(args.device)
         return time.perf_counter() - t0
 
-    ctx = SimpleNamespace(B=B, S=S, lr=lr, tokens=tokens, base=base, runners={"posttrain": ours}, trl_error=None,
-                          cleanup=lambda: shutil.rmtree(tmp, ignore_errors=True))
+    ctx = SimpleNamespace(B=B, S=S, lr=lr, tokens=tokens, loss_tokens=None, base=base, runners={"posttrain": ours},
+                          trl_error=None, cleanup=lambda: shutil.rmtree(tmp, ignore_errors=True))
     try:
         from datasets import Dataset
         from trl import RewardConfig as TRLConfig, RewardTrainer
@@ -715,7 +731,7 @@ def _rm_setup(args) -> SimpleNamespace:
 
     def trl_run() -> float:
         targs = TRLConfig(learning_rate=lr, max_length=max_len, disable_dropout=True,
-                          center_rewards_coefficient=None, **_trl_common(args, str(Path(tmp) / "trl"), B))
+                          center_rewards_coefficient=None, **_trl_common(args, str(Path(tmp) / "trl"), B, bf16))
         return _trl_timed_train(lambda: RewardTrainer(model=copy.deepcopy(base), args=targs,
                                                       train_dataset=Dataset.from_list(data), processing_class=tok),
                                 printer, S, tokens, args)
@@ -1434,19 +1450,25 @@ def bench_real(args) -> dict:
         row = {"batch": B, "new_tokens": M, **{f"{k}_tok_s": B * M / t for k, t in med.items()},
                **{f"ratio_{k}": med["model.generate"] / med[k] for k in ("fp32", "bf16") if k in med}, "times": times}
         rows_out.append(row)
+        flops = generation_flops(model, [int(n) for n in batch["attention_mask"].sum(1)], M)
         for p, k in (("fp32", "fp32"), ("bf16", "bf16")):
             if k in med:  # each decode step streams every weight once: bytes x steps/s against the measured stream
                 row[f"{k}_weight_gbs"] = weight_bytes[p] * M / med[k] / 1e9
                 row[f"{k}_of_stream"] = row[f"{k}_weight_gbs"] / limits[p]["stream_gbs"]
+                # and does 2 x parameters x batch FLOPs: past a few rows the matmul rate, not the stream, binds
+                row[f"{k}_gflops"] = flops / med[k] / 1e9
+                row[f"{k}_of_matmul"] = row[f"{k}_gflops"] / limits[p]["matmul_gflops"]
         bf16_cols = f"{row['bf16_tok_s']:>15.0f} {row['ratio_bf16']:>6.2f}x" if "bf16" in med else f"{'-':>15} {'-':>7}"
-        frac = "  ".join(f"{k} weights {row[f'{k}_weight_gbs']:.1f} GB/s = {100 * row[f'{k}_of_stream']:.0f}% of "
-                         f"the stream" for k in ("fp32", "bf16") if f"{k}_weight_gbs" in row)
+        frac = "  ".join(f"{k}: weights {row[f'{k}_weight_gbs']:.1f} GB/s = {100 * row[f'{k}_of_stream']:.0f}% of "
+                         f"the stream, {row[f'{k}_gflops']:.0f} GFLOP/s = {100 * row[f'{k}_of_matmul']:.0f}% of the "
+                         f"matmul rate" for k in ("fp32", "bf16") if f"{k}_weight_gbs" in row)
         print(f"{B:>5} {row['model.generate_tok_s']:>15.0f} {row['fp32_tok_s']:>12.0f} {row['ratio_fp32']:>6.2f}x "
               f"{bf16_cols}   {frac}", flush=True)
     if rows_out:
         print("ratio = model.generate time / engine time (medians of alternating runs; generate runs the fp32 model). "
               "GB/s: the engine's weight bytes (every parameter, in its dtype) x decode steps per second, against "
-              "the weight-streaming bandwidth measured above (prefill included in the time, so slightly low).")
+              "the weight-streaming bandwidth measured above; GFLOP/s: generation FLOPs (prefill, blocks, head and "
+              "attention) per second against the matmul rate (prefill included in the time, so both slightly low).")
     out_all["rows"] = rows_out
     if "step" not in parts:
         out_all["trainers"] = _real_trainers(args, limits, parts)
@@ -1564,7 +1586,10 @@ def _real_trainers(args, limits: dict, parts: set) -> dict:
                                                     **(extra or {}))
 
     precisions = args.real_autocast
-    for stage, setup in (("sft", _sft_setup), ("dpo", _dpo_setup)):
+    stages = (("SFT", "rows", lambda a, **k: _sft_setup(a, rows=4, **k)),
+              ("SFT", "rows", lambda a, **k: _sft_setup(a, rows=16, **k)),  # ~1.1k tokens a step
+              ("RM", "pairs", _rm_setup), ("DPO", "pairs", _dpo_setup))
+    for stage, unit, setup in stages:
         for bf16 in precisions:
             ctx = setup(args, real=True, bf16=bf16)
             if ctx.trl_error is not None:
@@ -1573,14 +1598,14 @@ def _real_trainers(args, limits: dict, parts: set) -> dict:
             times = _alternate({"trl": ctx.runners["trl"], "posttrain": ctx.runners["posttrain"]}, repeats,
                                args.device)
             mt, mo = statistics.median(times["trl"]) / ctx.S, statistics.median(times["posttrain"]) / ctx.S
-            label = (f"SFT, {ctx.B} rows x {ctx.tokens / (ctx.S * ctx.B):.0f} tok" if stage == "sft" else
-                     f"DPO, {ctx.B} pairs x {ctx.tokens / (ctx.S * ctx.B):.0f} tok")
+            label = f"{stage}, {ctx.B} {unit} x {ctx.tokens / (ctx.S * ctx.B):.0f} tok"
             p = "bf16" if bf16 else "fp32"
             row(label, p, mt, mo, dict(times=times, tokens=ctx.tokens, steps=ctx.S))
-            # the policy's forward + backward over every token (SFT: the head at the loss's tokens; DPO: chosen and
-            # rejected, the head everywhere); a reference forward, where a side runs one each step, is on top
-            flops = token_flops(_real_base(args)[1], ctx.tokens / ctx.S,
-                                ctx.loss_tokens / ctx.S if stage == "sft" else None)
+            # the policy's forward + backward over every token (SFT: the head at the loss's tokens; RM: a one-output
+            # head, left out; DPO: chosen and rejected, the head everywhere); a reference forward, where a side runs
+            # one each step, is on top
+            head = {"SFT": (ctx.loss_tokens or 0) / ctx.S, "RM": 0.0}.get(stage)
+            flops = token_flops(_real_base(args)[1], ctx.tokens / ctx.S, head)
             print(f"  achieved: ours {_of_peak(flops, mo, limits, p)}; TRL {_of_peak(flops, mt, limits, p)}",
                   flush=True)
             ctx.cleanup()

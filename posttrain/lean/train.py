@@ -254,9 +254,14 @@ def lean_hidden(model, input_ids: torch.Tensor, attention_mask: torch.Tensor,
     `*ForCausalLM`; differentiable. position_ids default to cumsum(attention_mask) - 1 (clamped at 0)."""
     if position_ids is None:
         position_ids = position_ids_from_mask(attention_mask)
-    x = _rows_forward(model, input_ids, attention_mask, position_ids)
+    return final_norm(model, _rows_forward(model, input_ids, attention_mask, position_ids))  # (B, T, d)
+
+
+def final_norm(model, x: torch.Tensor) -> torch.Tensor:
+    """The decoder's final RMSNorm of last-layer outputs x (..., d), e.g. chosen columns of `lean_packed_hidden`'s:
+    the last hidden states a head reads."""
     norm = model.model.norm
-    return _rms(x, norm.variance_epsilon) * norm.weight  # (B, T, d)
+    return _rms(x, norm.variance_epsilon) * norm.weight
 
 
 @_model_precision

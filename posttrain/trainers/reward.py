@@ -18,7 +18,9 @@ Details:
   is the head's output at the last token (`posttrain.scoring.reward_forward`, which also documents
   why that equals HF's own pooling). When the tokenizer pads with eos, the eos is left off so
   both poolings still agree. `posttrain.scoring.RewardModelScorer` builds inputs the same way.
-- Chosen and rejected go through the model in one forward (concatenated along the batch).
+- Chosen and rejected go through the model in one forward: on the lean path (a plain Llama-family model, no LoRA)
+  one row per pair, prompt + chosen + rejected under DPO's prefix-sharing mask, so the prompt runs once
+  (`scoring.pair_rewards`; the same rewards within fp32 rounding); otherwise two rows per pair along the batch.
 - Unlike TRL's RewardTrainer we do not truncate long rows: pairs longer than model.max_length
   are bad rows (`on_bad_rows`: stop naming the row, or skip with a count), as in DPO.
 - Non-finite loss: `loop.optimizer_step` stops before the update; weights are checked before

@@ -415,6 +415,42 @@ def test_reward_and_value_forwards_equal_hf(kind):
             torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
 
 
+@pytest.mark.parametrize("kind", ["llama", "qwen2"])
+def test_pair_rewards_share_the_prompt_on_the_lean_path_with_the_same_numbers(kind, monkeypatch):
+    """scoring.pair_rewards packs each pair into one row (prompt once, rejected never seeing chosen) on the lean
+    path: the same (2B,) rewards and gradients as two left-padded rows through the model's own forward, for pairs
+    of different prompt, chosen and rejected lengths; and it does run fewer tokens (the prompt once)."""
+    from posttrain.preferences import TokenizedPair
+    from posttrain.scoring import pair_rewards
+
+    model = _seqcls(kind)
+    g = torch.Generator().manual_seed(2)
+
+    def toks(n):
+        return torch.randint(3, V, (n,), generator=g).tolist()
+
+    pairs = [TokenizedPair(prompt=toks(p), chosen=toks(c), rejected=toks(r), row=i)
+             for i, (p, c, r) in enumerate([(5, 3, 6), (2, 7, 1), (9, 4, 4)])]
+    w = torch.randn(6, generator=g)
+    seen = []
+    real_forward = lean_train._rows_forward
+    monkeypatch.setattr(lean_train, "_rows_forward", lambda m, ids, *a, **k: seen.append(ids.numel()) or
+                        real_forward(m, ids, *a, **k))
+
+    def run(enabled):
+        monkeypatch.setattr(support, "ENABLED", enabled)
+        model.zero_grad(set_to_none=True)
+        r = pair_rewards(model, pairs, 0)
+        (r * w).sum().backward()
+        return r.detach(), {n: p.grad.clone() for n, p in model.named_parameters()}
+
+    (r0, g0), (r1, g1) = run(False), run(True)
+    assert seen == [3 * 17]  # one packed row per pair, as wide as the longest prompt + chosen + rejected (9 + 4 + 4)
+    torch.testing.assert_close(r1, r0, atol=1e-5, rtol=1e-5)
+    for n in g0:
+        torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
+
+
 def test_sharded_parameters_are_not_read_by_the_lean_paths():
     """FSDP-wrapped modules or DeepSpeed ZeRO-3 partitioned parameters hold only a shard outside the model's own
     forward: both lean paths (training forward, rollout engine) refuse them and say why."""
