@@ -1184,7 +1184,7 @@ def bench_grpo(args) -> dict:
 # ------------------------------------------------------------------ section: distill
 
 
-def _distill_setup(args) -> SimpleNamespace:
+def _distill_setup(args, real: bool = False) -> SimpleNamespace:
     """An on-policy distillation step of `posttrain distill` (the trainer, through the CLI) against TRL's
     DistillationTrainer (TRL >= 1.x; GKD's on-policy loss).
 
@@ -1196,48 +1196,66 @@ def _distill_setup(args) -> SimpleNamespace:
     metrics.jsonl's time/step (sampling + teacher + update); TRL's is timed between its on_step_begin and
     on_step_end callbacks (its generation happens inside the step). The first 2 steps of every run are warm-up
     and excluded; runs alternate; medians over all remaining steps.
+    real=True: the real model (--real) as student (model.start_from=base) and as teacher (the one real model at hand:
+    self-distillation, the same work per step as a distinct teacher of its size), 8 word-math held-out prompts per
+    step through its chat template (TRL gets one-message conversations, so it applies the same template), lr 1e-7,
+    max length 512. Each runner takes bf16=True for bf16 on both sides (ours run.mixed_precision=bf16 and
+    rollout.dtype=bfloat16; TRL bf16=True).
     """
     from posttrain.cli import STAGES, main as posttrain_main
 
     STAGES["distill"].load()
     from posttrain.models import save_model
 
-    steps = 8 if args.quick else 14
     root = Path(tempfile.mkdtemp(prefix="posttrain-bench-distill-"))
-    corpus = _corpus(300)
-    tok = train_tokenizer(corpus, vocab_size=1024)
-    student = build_model("tiny", tok, seed=0)
-    teacher = build_model("small", tok, seed=1)
-    save_model(student, tok, root / "student")
-    save_model(teacher, tok, root / "teacher")
-    prompts = [" ".join(c.split()[:20]) for c in corpus[:64]]
+    if real:
+        from posttrain.tasks import get_task
+
+        steps, per_step, max_len, lr = 4 if args.quick else 6, 8, 512, 1e-7
+        tok, student = _real_base(args)
+        teacher = student
+        student_dir = teacher_dir = Path(args.real).resolve()
+        prompts = [r["prompt"] for r in get_task("word-math").make_examples(64, 0, "eval")]
+    else:
+        steps, per_step, max_len, lr = 8 if args.quick else 14, 16, 256, 1e-4
+        corpus = _corpus(300)
+        tok = train_tokenizer(corpus, vocab_size=1024)
+        student = build_model("tiny", tok, seed=0)
+        teacher = build_model("small", tok, seed=1)
+        student_dir, teacher_dir = root / "student", root / "teacher"
+        save_model(student, tok, student_dir)
+        save_model(teacher, tok, teacher_dir)
+        prompts = [" ".join(c.split()[:20]) for c in corpus[:64]]
     (root / "prompts.jsonl").write_text("".join(json.dumps({"prompt": p}) + "\n" for p in prompts))
     recipe = root / "bench-distill.yaml"
     recipe.write_text(f"""# on-policy distillation step benchmark (scripts/bench.py); posttrain distill --recipe this file, ~1 min
 task: {{name: tiny-countdown, n_train: 16, n_eval: 8}}
-model: {{path: {root / 'student'}, max_length: 256}}
+model: {{path: {student_dir}, max_length: {max_len}, start_from: {'base' if real else 'sft'}}}
 distill:
-  teacher: {root / 'teacher'}
+  teacher: {teacher_dir}
   verifier: none
   train_file: {root / 'prompts.jsonl'}
-  prompts_per_step: 16
+  prompts_per_step: {per_step}
   max_new_tokens: {args.max_new_tokens}
-  lr: 1.0e-4
+  lr: {lr:.1e}
   eval_every: 0
   save_every: 0
 """)
-    sft = root / "runs" / "bench-distill" / "sft" / "final"
-    sft.parent.mkdir(parents=True)
-    shutil.copytree(root / "student", sft)
+    if not real:
+        sft = root / "runs" / "bench-distill" / "sft" / "final"
+        sft.parent.mkdir(parents=True)
+        shutil.copytree(student_dir, sft)
 
-    def ours() -> tuple[list[float], dict[str, float]]:
+    def ours(bf16: bool = False) -> tuple[list[float], dict[str, float]]:
+        precision = ["run.mixed_precision=bf16", "rollout.dtype=bfloat16"] if bf16 else []
         with contextlib.redirect_stdout(io.StringIO()):
             rc = posttrain_main(["distill", "--recipe", str(recipe), f"run.output_dir={root / 'runs'}",
-                                 f"run.threads={args.threads}", "run.quiet=true", f"max_steps={steps}"])
+                                 f"run.threads={args.threads}", "run.quiet=true", f"max_steps={steps}", *precision])
         assert rc == 0, "posttrain distill failed"
         return _cli_step_times(root / "runs" / "bench-distill" / "distill" / "metrics.jsonl", ("sample", "train"))
 
-    ctx = SimpleNamespace(steps=steps, student=student, teacher=teacher, runners={"posttrain": ours}, trl_error=None,
+    ctx = SimpleNamespace(steps=steps, per_step=per_step, student=student, teacher=teacher,
+                          runners={"posttrain": ours}, trl_error=None,
                           cleanup=lambda: shutil.rmtree(root, ignore_errors=True))
     try:
         from datasets import Dataset
@@ -1249,17 +1267,20 @@ distill:
     trl_tok = copy.deepcopy(tok)
     trl_tok.padding_side = "left"  # TRL's generation needs left padding
 
-    def trl_run() -> list[float]:
-        targs = DistillationConfig(output_dir=str(root / "trl"), per_device_train_batch_size=16,
+    trl_prompts = [[{"role": "user", "content": p}] for p in prompts] if real else prompts
+
+    def trl_run(bf16: bool = False) -> list[float]:
+        targs = DistillationConfig(output_dir=str(root / "trl"), per_device_train_batch_size=per_step,
                                    max_completion_length=args.max_new_tokens, temperature=1.0, beta=1.0,
-                                   learning_rate=1e-4, lr_scheduler_type="constant", max_grad_norm=1.0,
-                                   max_steps=steps, bf16=False, fp16=False, **_no_checkpointing(),
+                                   learning_rate=lr, lr_scheduler_type="constant", max_grad_norm=1.0,
+                                   max_steps=steps, bf16=bf16, fp16=False, **_no_checkpointing(),
                                    use_cpu=args.device == "cpu", logging_strategy="no", save_strategy="no",
                                    report_to=[], disable_tqdm=True, dataloader_num_workers=0, seed=0)
         timer = _step_timer(args.device)
         with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
             trainer = DistillationTrainer(model=copy.deepcopy(student), teacher_model=copy.deepcopy(teacher),
-                                          args=targs, train_dataset=Dataset.from_list([{"prompt": p} for p in prompts]),
+                                          args=targs,
+                                          train_dataset=Dataset.from_list([{"prompt": p} for p in trl_prompts]),
                                           processing_class=trl_tok, callbacks=[timer])
             trainer.remove_callback(printer)
             out = trainer.train()
@@ -1604,7 +1625,7 @@ def _real_trainers(args, limits: dict, parts: set) -> dict:
             # the policy's forward + backward over every token (SFT: the head at the loss's tokens; RM: a one-output
             # head, left out; DPO: chosen and rejected, the head everywhere); a reference forward, where a side runs
             # one each step, is on top
-            head = {"SFT": (ctx.loss_tokens or 0) / ctx.S, "RM": 0.0}.get(stage)
+            head = {"SFT": getattr(ctx, "loss_tokens", 0) / ctx.S, "RM": 0.0}.get(stage)
             flops = token_flops(_real_base(args)[1], ctx.tokens / ctx.S, head)
             print(f"  achieved: ours {_of_peak(flops, mo, limits, p)}; TRL {_of_peak(flops, mt, limits, p)}",
                   flush=True)
@@ -1623,9 +1644,22 @@ def _real_trainers(args, limits: dict, parts: set) -> dict:
                   f"{phases['train']:.2f} s", flush=True)
     finally:
         ctx.cleanup()
+    ctx = _distill_setup(args, real=True)
+    try:
+        for bf16 in precisions:
+            t_ours, phases = ctx.runners["posttrain"](bf16=bf16)
+            t_trl = ctx.runners["trl"](bf16=bf16)
+            mt, mo = statistics.median(t_trl), statistics.median(t_ours)
+            row(f"distill, {ctx.per_step} x <= {args.max_new_tokens} tok", "bf16" if bf16 else "fp32", mt, mo,
+                dict(ours_times=t_ours, trl_times=t_trl, ours_phases=phases))
+            print(f"  posttrain: {phases['completion_tokens']:.1f} completion tokens per row, sample "
+                  f"{phases['sample']:.2f} s, teacher + update {phases['train']:.2f} s (reverse KL over the vocabulary; "
+                  f"TRL beta 1)", flush=True)
+    finally:
+        ctx.cleanup()
     print("ratio = TRL time per step / posttrain time per step; same model, rows, batch and settings. bf16: autocast "
-          "over fp32 weights on both sides (GRPO: ours also samples with bf16 weights, rollout.dtype=bfloat16; TRL "
-          "generates under its autocast).")
+          "over fp32 weights on both sides (GRPO and distill: ours also samples with bf16 weights, "
+          "rollout.dtype=bfloat16; TRL generates under its autocast).")
     return _real_tools(args, out, parts)
 
 

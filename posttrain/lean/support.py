@@ -15,9 +15,11 @@ Then per mode:
   would have run those matmuls in bf16 anyway); a `*ForCausalLM`, or a peft model with plain LoRA adapters on
   Linear layers (the decoder fuses base + deltas into its weights and honours disabled adapters).
 - "train" (`sequence_logprobs`, reward / value forwards): the object passed is itself a `*ForCausalLM`
-  (head="lm") or `*ForSequenceClassification` (head="score") `PreTrainedModel` (not DDP / FSDP / peft /
-  torch.compile-wrapped: a wrapper needs its own forward for gradient sync or adapters), plain nn.Linear
-  projections and nn.Embedding, no gradient checkpointing, attention_dropout 0, no module hooks, and not
+  (head="lm") or `*ForSequenceClassification` (head="score") `PreTrainedModel`, or (head="lm") a peft model with
+  plain LoRA adapters without dropout on its Linear layers (the forward adds each adapter's scaling * B(A(h)), so
+  gradients reach A and B; the frozen base weights are cast to bf16 once, not per forward); not DDP / FSDP /
+  torch.compile-wrapped (a wrapper needs its own forward for gradient sync); plain nn.Linear (or LoRA) projections
+  and nn.Embedding, no gradient checkpointing, attention_dropout 0, no module hooks, and not
   fp16 / fp8 mixed precision: under bf16 autocast (the caller's torch.autocast, or accelerate's mixed precision,
   whose patched forward it never calls: `train_autocast`) it runs its matmuls in bf16 as the HF forward would,
   with an fp32 residual stream and fp32 log-probs. `ENABLED = False` (or POSTTRAIN_LEAN_TRAIN=0) turns it off.
@@ -63,6 +65,16 @@ def plain_or_lora(m) -> str | None:
     if any(getattr(m, "lora_variant", {}).get(a) is not None for a in m.active_adapters):
         return "a LoRA variant (DoRA, ...) is active"
     return None
+
+
+def _lora_train(m) -> str | None:
+    """None when the training forward can run `m`: a plain nn.Linear, or a plain LoRA Linear whose active adapters
+    have no dropout (the lean path draws no dropout masks); else why not."""
+    why = plain_or_lora(m)
+    if why is None and type(m) is not nn.Linear:
+        if any(type(m.lora_dropout[a]) is not nn.Identity for a in m.active_adapters if a in m.lora_dropout):
+            return "LoRA dropout (the lean training path has none)"
+    return why
 
 
 def _plain(m) -> str | None:
@@ -215,26 +227,25 @@ def lean_support(model, seq_len: int | None = None, *, mode: str = "decode", hea
         raise ValueError(f"lean_support: mode must be one of {MODES} and head 'lm' or 'score' (train only), "
                          f"got {mode!r}, {head!r}")
     train = mode == "train"
-    lora = False
+    outer = model  # accelerate's mixed precision patches the outermost object (`train_autocast`)
+    if train and not ENABLED:
+        return False, "disabled (posttrain.lean.support.ENABLED / POSTTRAIN_LEAN_TRAIN=0)"
+    lora = hasattr(model, "peft_config") and hasattr(model, "get_base_model")
+    if hasattr(model, "peft_config") and not lora:
+        return False, "peft-wrapped model of unknown shape"
+    if lora:
+        if train and head != "lm":
+            return False, "a peft reward / value model (the lean training path runs LoRA on causal LMs only)"
+        types_ = {getattr(c, "peft_type", None) for c in model.peft_config.values()}
+        if {str(t).split(".")[-1] for t in types_} != {"LORA"}:
+            return False, f"peft adapters of type(s) {sorted(map(str, types_))} (the lean path fuses LoRA only)"
+        model = model.get_base_model()
     if train:
-        if not ENABLED:
-            return False, "disabled (posttrain.lean.support.ENABLED / POSTTRAIN_LEAN_TRAIN=0)"
         from transformers import PreTrainedModel
 
         kind = {"lm": "ForCausalLM", "score": "ForSequenceClassification"}[head]
         if not isinstance(model, PreTrainedModel) or not type(model).__name__.endswith(kind):
             return False, f"{type(model).__name__} is not a *{kind} PreTrainedModel (a wrapper runs its own forward)"
-        if hasattr(model, "peft_config") or hasattr(model, "get_base_model"):
-            return False, "peft model"
-    else:
-        lora = hasattr(model, "peft_config") and hasattr(model, "get_base_model")
-        if hasattr(model, "peft_config") and not lora:
-            return False, "peft-wrapped model of unknown shape"
-        if lora:
-            types_ = {getattr(c, "peft_type", None) for c in model.peft_config.values()}
-            if {str(t).split(".")[-1] for t in types_} != {"LORA"}:
-                return False, f"peft adapters of type(s) {sorted(map(str, types_))} (the lean path fuses LoRA only)"
-            model = model.get_base_model()
     cfg = getattr(model, "config", None)
     if cfg is None:
         return False, "model has no config"
@@ -242,7 +253,7 @@ def lean_support(model, seq_len: int | None = None, *, mode: str = "decode", hea
     if mt not in LEAN_MODEL_TYPES:
         known = f": {FALLBACK_REASONS[mt]}" if mt in FALLBACK_REASONS else ""
         return False, f"model_type {mt!r} is not one of {LEAN_MODEL_TYPES}{known}"
-    linear_problem = _plain if train else plain_or_lora
+    linear_problem = (_lora_train if lora else _plain) if train else plain_or_lora
     out_name = "lm_head" if head == "lm" else "score"
     base, out = getattr(model, "model", None), getattr(model, out_name, None)
     if base is None or out is None or linear_problem(out) is not None:
@@ -267,7 +278,7 @@ def lean_support(model, seq_len: int | None = None, *, mode: str = "decode", hea
     device = next(iter(devices))
     amp = None
     if train:
-        amp, why = train_autocast(model, device)
+        amp, why = train_autocast(outer, device)
     else:
         why = autocast_problem(device)
     why = why or llama_family_problem(cfg, base)
@@ -302,7 +313,7 @@ def lean_support(model, seq_len: int | None = None, *, mode: str = "decode", hea
     if not hasattr(getattr(base, "norm", None), "variance_epsilon"):
         return False, "the final norm is not a Llama-style RMSNorm"
     if train:
-        return True, f"lean training forward ({mt}{', bf16 autocast' if amp is not None else ''})"
+        return True, f"lean training forward ({mt}{', LoRA' if lora else ''}{', bf16 autocast' if amp is not None else ''})"
     half = effective_weight(out).dtype
     prec = f", {str(half).removeprefix('torch.')} weights" if half in HALF_DTYPES else ""
     if decode_autocast(device)[0] is not None:

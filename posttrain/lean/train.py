@@ -56,9 +56,11 @@ Switch: `posttrain.lean.support.ENABLED = False`, or POSTTRAIN_LEAN_TRAIN=0 in t
 from __future__ import annotations
 
 import functools
+import weakref
 
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from ..models import causal_padding_mask, position_ids_from_mask
 from .support import rope_cis, rope_pair_order, train_autocast
@@ -80,12 +82,13 @@ def _model_precision(fn):
     entered here; a caller's own torch.autocast is already on. Without mixed precision: fp32, unchanged."""
     @functools.wraps(fn)
     def run(model, *args, **kwargs):
-        device = model.model.embed_tokens.weight.device
-        dtype, _ = train_autocast(model, device)
+        inner = model.get_base_model() if hasattr(model, "get_base_model") else model  # a peft LoRA model's own
+        device = inner.model.embed_tokens.weight.device
+        dtype, _ = train_autocast(model, device)  # accelerate patches the outermost object's forward
         if dtype is None or torch.is_autocast_enabled(device.type):
-            return fn(model, *args, **kwargs)
+            return fn(inner, *args, **kwargs)
         with torch.autocast(device.type, dtype=dtype):
-            return fn(model, *args, **kwargs)
+            return fn(inner, *args, **kwargs)
     return run
 
 
@@ -100,15 +103,66 @@ def _rms(x: torch.Tensor, eps: float) -> torch.Tensor:
     return x * torch.rsqrt(x.pow(2).mean(-1, keepdim=True) + eps)
 
 
-def _normed(x: torch.Tensor, norm, weights: tuple) -> tuple[torch.Tensor, tuple]:
-    """RMSNorm `norm` of x (N, d) for the projections `weights` that read it: its weight g multiplies either the
+def _normed(x: torch.Tensor, norm, projections: tuple) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """RMSNorm `norm` of x (N, d) for the `projections` that read it: its weight g multiplies either the
     activations (x_normed * g, N x d products, as HF does) or, when there are more tokens than the projections have
-    rows, each following weight (W * g: one activation-sized multiply fewer, forward and backward). Returns
-    (the input of the projections, their weights)."""
+    rows and they are plain nn.Linear, each following weight (W * g: one activation-sized multiply fewer, forward
+    and backward). Returns (the projections' input, g to fold into their weights or None): see `_proj`."""
     h, g = _rms(x, norm.variance_epsilon), norm.weight
-    if x.shape[0] > sum(w.shape[0] for w in weights):
-        return h, tuple(w * g for w in weights)
-    return h * g, weights
+    if x.shape[0] > sum(m.weight.shape[0] for m in projections) and all(type(m) is nn.Linear for m in projections):
+        return h, g
+    return h * g, None
+
+
+# bf16 copies of frozen weights (a LoRA model's base), made once and reused while the weight is unchanged: autocast
+# would cast every one of them again in each forward. id(weight) -> (a weak reference to it, {(dtype, permuted):
+# (version, copy)}); the entry goes when the weight does, and the version counter makes a fresh copy after an
+# in-place change (a checkpoint load).
+_FROZEN_CASTS: dict[int, tuple] = {}
+
+
+def _frozen_cast(w: torch.Tensor, dtype: torch.dtype, perm: torch.Tensor | None) -> torch.Tensor:
+    """`w` (rows permuted by `perm`) in `dtype`, cached while w keeps its version."""
+    k = id(w)
+    entry = _FROZEN_CASTS.get(k)
+    if entry is None or entry[0]() is not w:
+        entry = _FROZEN_CASTS[k] = (weakref.ref(w, lambda _, k=k: _FROZEN_CASTS.pop(k, None)), {})
+    copies = entry[1]
+    key = (dtype, perm is not None)
+    hit = copies.get(key)
+    if hit is None or hit[0] != w._version:
+        with torch.no_grad():
+            t = w if perm is None else w.index_select(0, perm)
+            hit = copies[key] = (w._version, t.to(dtype))
+    return hit[1]
+
+
+def _proj(m, h: torch.Tensor, g: torch.Tensor | None = None, perm: torch.Tensor | None = None) -> torch.Tensor:
+    """A projection of h (N, in): a plain nn.Linear, or a peft LoRA Linear (base + each active adapter's
+    scaling * B(A(h)), no dropout: `lean_support`), with `g` (a norm weight, plain Linear only) folded into the
+    weight and the output rows permuted by `perm` (RoPE's pair order for q / k). A frozen base weight under bf16
+    autocast is read from `_frozen_cast` (cast once, not in every forward)."""
+    base = m if type(m) is nn.Linear else m.base_layer
+    w, b = base.weight, base.bias
+    dtype = _autocast_dtype(h.device)
+    if g is None and not w.requires_grad and dtype is not None:
+        w = _frozen_cast(w, dtype, perm)
+    else:
+        w = w if g is None else w * g
+        w = w if perm is None else w.index_select(0, perm)
+    if b is not None and perm is not None:
+        b = b.index_select(0, perm)
+    y = F.linear(h, w, b)
+    if base is m or m.disable_adapters or m.merged:
+        return y
+    for a in m.active_adapters:
+        if a not in m.lora_A:
+            continue
+        lb = m.lora_B[a]
+        wb = lb.weight if perm is None else lb.weight.index_select(0, perm)
+        bb = lb.bias if lb.bias is None or perm is None else lb.bias.index_select(0, perm)
+        y = y + F.linear(F.linear(h, m.lora_A[a].weight), wb, bb) * m.scaling[a]
+    return y
 
 
 def _dims(model):
@@ -144,21 +198,18 @@ def _decoder(model, x: torch.Tensor, cis: torch.Tensor, attend) -> torch.Tensor:
     perm_q, perm_k = _perm(H, D, x.device), _perm(Hkv, D, x.device)
     for layer in model.model.layers[:cfg.num_hidden_layers]:
         a, m = layer.self_attn, layer.mlp
-        h, (wq, wk, wv) = _normed(x, layer.input_layernorm, (a.q_proj.weight, a.k_proj.weight, a.v_proj.weight))
-        bq, bk = a.q_proj.bias, a.k_proj.bias
-        q = F.linear(h, wq.index_select(0, perm_q),
-                     None if bq is None else bq.index_select(0, perm_q))  # (N, H*D), pairs interleaved
-        k = F.linear(h, wk.index_select(0, perm_k),
-                     None if bk is None else bk.index_select(0, perm_k))  # (N, Hkv*D)
-        v = F.linear(h, wv, a.v_proj.bias)  # (N, Hkv*D)
+        h, g = _normed(x, layer.input_layernorm, (a.q_proj, a.k_proj, a.v_proj))
+        q = _proj(a.q_proj, h, g, perm_q)  # (N, H*D), pairs interleaved
+        k = _proj(a.k_proj, h, g, perm_k)  # (N, Hkv*D)
+        v = _proj(a.v_proj, h, g)  # (N, Hkv*D)
         # RoPE in fp32 (bf16 under autocast: there is no complex bf16); the attention casts back
         q = torch.view_as_real(torch.view_as_complex(q.float().view(N, H, D // 2, 2)) * cis).view(N, H, D)
         k = torch.view_as_real(torch.view_as_complex(k.float().view(N, Hkv, D // 2, 2)) * cis).view(N, Hkv, D)
-        x = x + F.linear(attend(q, k, v.view(N, Hkv, D)), a.o_proj.weight, a.o_proj.bias)
-        h, (wg, wu) = _normed(x, layer.post_attention_layernorm, (m.gate_proj.weight, m.up_proj.weight))
-        gate = F.linear(h, wg, m.gate_proj.bias)  # (N, I)
-        up = F.linear(h, wu, m.up_proj.bias)
-        x = x + F.linear(F.silu(gate) * up, m.down_proj.weight, m.down_proj.bias)
+        x = x + _proj(a.o_proj, attend(q, k, v.view(N, Hkv, D)))
+        h, g = _normed(x, layer.post_attention_layernorm, (m.gate_proj, m.up_proj))
+        gate = _proj(m.gate_proj, h, g)  # (N, I)
+        up = _proj(m.up_proj, h, g)
+        x = x + _proj(m.down_proj, F.silu(gate) * up)
     return x
 
 

@@ -204,8 +204,9 @@ def test_unsupported_models_fall_back():
 
     from peft import LoraConfig, get_peft_model
 
-    peft_model = get_peft_model(_llama(), LoraConfig(r=2, target_modules=["q_proj", "v_proj"]))
-    assert not lean_support(peft_model, mode="train")[0]
+    peft_model = get_peft_model(_llama(), LoraConfig(r=2, target_modules=["q_proj", "v_proj"], lora_dropout=0.1))
+    ok, why = lean_support(peft_model, mode="train")
+    assert not ok and "dropout" in why  # the lean path draws no dropout masks
     assert not lean_support(peft_model.get_base_model(), mode="train")[0]  # LoRA layers inside
 
     gc = _llama()
@@ -700,7 +701,8 @@ def test_the_norm_weight_on_the_activations_or_folded_into_the_weights_gives_the
     norm = nn.Module()
     norm.weight = nn.Parameter(1 + 0.3 * torch.randn(16, generator=g))
     norm.variance_epsilon = 1e-6
-    ws = [nn.Parameter(torch.randn(rows, 16, generator=g)) for rows in (96, 96)]
+    lins = [nn.Linear(16, rows, bias=False) for rows in (96, 96)]
+    ws = [m.weight for m in lins]
     x = torch.randn(tokens, 16, generator=g, requires_grad=True)
     up = torch.randn(tokens, 96, generator=g)
 
@@ -708,11 +710,13 @@ def test_the_norm_weight_on_the_activations_or_folded_into_the_weights_gives_the
         for p in (norm.weight, x, *ws):
             p.grad = None
         if lean:
-            h, w2 = lean_train._normed(x, norm, tuple(ws))
-            assert (w2[0] is ws[0]) == (tokens <= 192)  # folded only past the rows
+            h, fold = lean_train._normed(x, norm, tuple(lins))
+            assert (fold is None) == (tokens <= 192)  # folded only past the rows
+            outs = [lean_train._proj(m, h, fold) for m in lins]
         else:
-            h, w2 = lean_train._rms(x, 1e-6) * norm.weight, ws
-        out = sum((torch.nn.functional.linear(h, w) * up).sum() for w in w2)
+            h = lean_train._rms(x, 1e-6) * norm.weight
+            outs = [torch.nn.functional.linear(h, w) for w in ws]
+        out = sum((o * up).sum() for o in outs)
         out.backward()
         return out.detach(), [p.grad.clone() for p in (norm.weight, x, *ws)]
 
@@ -756,3 +760,69 @@ def test_explicit_bf16_attention_matches_the_fused_kernel(shape, monkeypatch):
     torch.testing.assert_close(o1, o0, atol=3e-2, rtol=0)  # both bf16: ~2^-8 relative of values ~1
     for a, b in zip(g1, g0):
         assert _cosine(a, b) > 0.999
+
+
+def _lora_model(**kw):
+    """A perturbed llama under peft LoRA adapters on every projection, B made non-zero so the deltas count."""
+    from peft import LoraConfig, get_peft_model
+
+    model = get_peft_model(_llama(**kw), LoraConfig(r=4, lora_alpha=8, target_modules=[
+        "q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj"]))
+    g = torch.Generator().manual_seed(4)
+    with torch.no_grad():
+        for n, p in model.named_parameters():
+            if "lora_B" in n:
+                p.copy_(0.05 * torch.randn(p.shape, generator=g))
+    return model
+
+
+@pytest.mark.parametrize("padding", ["none", "both"])
+def test_lora_models_run_the_lean_forward_with_hf_numbers(padding, monkeypatch):
+    """A peft LoRA model (no dropout) takes the lean training forward: the same log-probs as peft's own forward and
+    the same gradients of every adapter (the base stays frozen, and gets none), adapters disabled too (a reference
+    under `disable_adapter`); biases on the projections and GQA included."""
+    model = _lora_model(num_key_value_heads=2, attention_bias=True)
+    ok, why = lean_support(model, 13, mode="train")
+    assert ok and "LoRA" in why, why
+    ids, am, cm = _batch(padding)
+
+    def run(lean: bool):
+        lp, grads = _logprobs_and_grads(model, ids, am, cm, lean, monkeypatch)
+        with torch.no_grad(), model.disable_adapter():
+            off, _ = sequence_logprobs(model, ids, am, cm)
+        return lp, grads, off
+
+    (lp0, g0, off0), (lp1, g1, off1) = run(False), run(True)
+    torch.testing.assert_close(lp1, lp0, atol=1e-5, rtol=2e-6)
+    torch.testing.assert_close(off1, off0, atol=1e-5, rtol=2e-6)
+    assert float((off0 - lp0).abs().max()) > 1e-3  # the adapters do change the numbers
+    assert g1.keys() == g0.keys() and g0 and all("lora_" in n for n in g0)
+    for n in g0:
+        torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
+
+
+def test_lora_under_bf16_autocast_casts_the_frozen_base_once(monkeypatch):
+    """Under bf16 autocast a LoRA model's frozen base weights are cast to bf16 once and reused (`_frozen_cast`),
+    a fresh copy after an in-place change of the weight; the log-probs stay as close to fp32 as the HF forward's
+    under the same autocast, and the adapters' gradients point the same way."""
+    model = _lora_model()
+    ids, am, cm = _batch("both")
+    lp32, g32 = _logprobs_and_grads(model, ids, am, cm, True, monkeypatch)
+    lean_train._FROZEN_CASTS.clear()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        lp_lean, g_lean = _logprobs_and_grads(model, ids, am, cm, True, monkeypatch)
+        copies = {id(t) for _, e in lean_train._FROZEN_CASTS.values() for _, t in e.values()}
+        assert len(copies) == 7 * 2  # every projection of both layers, cast once
+        again, _ = _logprobs_and_grads(model, ids, am, cm, True, monkeypatch)
+        assert {id(t) for _, e in lean_train._FROZEN_CASTS.values() for _, t in e.values()} == copies  # reused
+        torch.testing.assert_close(again, lp_lean, atol=0, rtol=0)
+        lp_hf, _ = _logprobs_and_grads(model, ids, am, cm, False, monkeypatch)
+        w = model.get_base_model().model.layers[0].mlp.down_proj.base_layer.weight
+        with torch.no_grad():
+            w.mul_(1.5)  # e.g. a checkpoint loaded in place
+        changed, _ = _logprobs_and_grads(model, ids, am, cm, True, monkeypatch)
+    assert float((changed - lp_lean).abs().max()) > 0  # the new weight was cast, not the stale copy
+    err_lean, err_hf = float((lp_lean - lp32).abs().max()), float((lp_hf - lp32).abs().max())
+    assert 0 < err_lean < 0.5 and err_lean <= 4 * err_hf + 0.02, (err_lean, err_hf)
+    for n in g32:
+        assert _cosine(g_lean[n], g32[n]) > 0.98, n

@@ -476,6 +476,7 @@ def test_lora_grpo_learns_with_the_reference_as_adapters_off(sft_model, tmp_path
     r = [x["reward/mean"] for x in steps]
     first, last = sum(r[:5]) / 5, sum(r[-5:]) / 5
     learning.above("digit fraction, last 5 - first 5 steps", last - first, 0.1, r)
-    assert steps[0]["kl"] < 1e-4 < steps[-1]["kl"]  # adapters start at 0: policy == reference at step 1
+    kl = [x["kl"] for x in steps if "kl" in x]  # steps that trained (once every group scores 1.0 none does)
+    assert steps[0]["kl"] < 1e-4 < kl[-1]  # adapters start at 0: policy == reference at step 1
     final = out / "tiny-countdown" / "grpo" / "final"
     assert (final / "model.safetensors").is_file() and not (final / "adapter_config.json").exists()

@@ -479,8 +479,9 @@ def test_lora_ppo_learns_with_no_reference_copy_and_saves_a_merged_model(world, 
     learning.below("completions without EOS (median of the last 4 iterations)", (late[1] + late[2]) / 2, 0.3,
                    [r["rollout/no_eos"] for r in m])
     assert all(r["rollout/logprob_gap"] < 1e-3 for r in m)  # the engine's LoRA path == the policy's forward
-    # the reference is the base: KL is 0 before the first update and grows once the adapters moved
-    assert m[0]["rollout/kl"] == 0.0, [r["rollout/kl"] for r in m]
+    # the reference is the base: KL is 0 before the first update (fp32 rounding: the lean forward may run the policy's
+    # and the reference's rows in different groupings) and grows once the adapters moved
+    assert abs(m[0]["rollout/kl"]) < 1e-5, [r["rollout/kl"] for r in m]
     learning.above("KL to the reference at the end", m[-1]["rollout/kl"], 0.1, [r["rollout/kl"] for r in m])
     assert "gold win-rate of the PPO model against the SFT model" in text
     final = out / "tiny-summarize" / "ppo" / "final"
