@@ -1625,7 +1625,7 @@ def _real_trainers(args, limits: dict, parts: set) -> dict:
             # the policy's forward + backward over every token (SFT: the head at the loss's tokens; RM: a one-output
             # head, left out; DPO: chosen and rejected, the head everywhere); a reference forward, where a side runs
             # one each step, is on top
-            head = {"SFT": getattr(ctx, "loss_tokens", 0) / ctx.S, "RM": 0.0}.get(stage)
+            head = {"SFT": (getattr(ctx, "loss_tokens", None) or 0) / ctx.S, "RM": 0.0}.get(stage)
             flops = token_flops(_real_base(args)[1], ctx.tokens / ctx.S, head)
             print(f"  achieved: ours {_of_peak(flops, mo, limits, p)}; TRL {_of_peak(flops, mt, limits, p)}",
                   flush=True)

@@ -5,8 +5,9 @@ update (under autograd) and for reference / old-policy log-probs (under no-grad)
 models' forwards (`scoring.reward_forward`, PPO's `token_values`).
 
 CPU: `python -c "import posttrain.lean.train"` (exercised by tests/posttrain/lean/test_lean_train.py).
-Multi-GPU: a DDP / FSDP / peft wrapper is never run here (it needs its own forward for gradient sync or
-adapters): `sequence_logprobs` then calls the model's own forward.
+Multi-GPU: a DDP / FSDP wrapper is never run here (it needs its own forward for gradient sync):
+`sequence_logprobs` then calls the model's own forward. A peft LoRA model (no dropout) is run here: each
+projection adds its adapters' scaling * B(A(h)) (`_proj`), the frozen base cast to bf16 once under autocast.
 
 What it computes: the same numbers as `model(input_ids=, attention_mask=, position_ids=).logits` (in fp32, equal
 within fp32 rounding, tested: logits 1e-5 absolute, gradients of every parameter), for left-, right- or
