@@ -1630,33 +1630,29 @@ def _real_trainers(args, limits: dict, parts: set) -> dict:
             print(f"  achieved: ours {_of_peak(flops, mo, limits, p)}; TRL {_of_peak(flops, mt, limits, p)}",
                   flush=True)
             ctx.cleanup()
-    ctx = _grpo_setup(args, real=True)
-    try:
-        for bf16 in precisions:
-            t_ours, phases = ctx.runners["posttrain"](bf16=bf16)
-            t_trl = ctx.runners["trl"](bf16=bf16)
-            mt, mo = statistics.median(t_trl), statistics.median(t_ours)
-            row(f"GRPO, 2 x {ctx.group} x <= {args.max_new_tokens} tok", "bf16" if bf16 else "fp32", mt, mo,
-                dict(ours_times=t_ours, trl_times=t_trl, ours_phases=phases,
-                     trl_completion_tokens=ctx.trl_completion_tokens))
-            print(f"  completion tokens per row: posttrain {phases['completion_tokens']:.1f}, TRL "
-                  f"{ctx.trl_completion_tokens:.1f}; posttrain sample {phases['sample']:.2f} s, update "
-                  f"{phases['train']:.2f} s", flush=True)
-    finally:
-        ctx.cleanup()
-    ctx = _distill_setup(args, real=True)
-    try:
-        for bf16 in precisions:
-            t_ours, phases = ctx.runners["posttrain"](bf16=bf16)
-            t_trl = ctx.runners["trl"](bf16=bf16)
-            mt, mo = statistics.median(t_trl), statistics.median(t_ours)
-            row(f"distill, {ctx.per_step} x <= {args.max_new_tokens} tok", "bf16" if bf16 else "fp32", mt, mo,
-                dict(ours_times=t_ours, trl_times=t_trl, ours_phases=phases))
-            print(f"  posttrain: {phases['completion_tokens']:.1f} completion tokens per row, sample "
-                  f"{phases['sample']:.2f} s, teacher + update {phases['train']:.2f} s (reverse KL over the vocabulary; "
-                  f"TRL beta 1)", flush=True)
-    finally:
-        ctx.cleanup()
+
+    def online(ctx, label: str, line, extra=lambda ctx: {}) -> None:
+        """GRPO's and distill's rows: each side's timed steps of one run per precision (its first steps warm-up);
+        `line(ctx, phases)` prints what else the row measured, `extra(ctx)` stores it."""
+        try:
+            for bf16 in precisions:
+                t_ours, phases = ctx.runners["posttrain"](bf16=bf16)
+                t_trl = ctx.runners["trl"](bf16=bf16)
+                row(label, "bf16" if bf16 else "fp32", statistics.median(t_trl), statistics.median(t_ours),
+                    dict(ours_times=t_ours, trl_times=t_trl, ours_phases=phases, **extra(ctx)))
+                print(line(ctx, phases), flush=True)
+        finally:
+            ctx.cleanup()
+
+    online(_grpo_setup(args, real=True), f"GRPO, 2 x 4 x <= {args.max_new_tokens} tok",
+           lambda ctx, ph: f"  completion tokens per row: posttrain {ph['completion_tokens']:.1f}, TRL "
+                           f"{ctx.trl_completion_tokens:.1f}; posttrain sample {ph['sample']:.2f} s, update "
+                           f"{ph['train']:.2f} s",
+           lambda ctx: {"trl_completion_tokens": ctx.trl_completion_tokens})
+    online(_distill_setup(args, real=True), f"distill, 8 x <= {args.max_new_tokens} tok",
+           lambda ctx, ph: f"  posttrain: {ph['completion_tokens']:.1f} completion tokens per row, sample "
+                           f"{ph['sample']:.2f} s, teacher + update {ph['train']:.2f} s (reverse KL over the "
+                           f"vocabulary; TRL beta 1)")
     print("ratio = TRL time per step / posttrain time per step; same model, rows, batch and settings. bf16: autocast "
           "over fp32 weights on both sides (GRPO and distill: ours also samples with bf16 weights, "
           "rollout.dtype=bfloat16; TRL generates under its autocast).")
