@@ -668,18 +668,30 @@ def token_divergence(
     Differentiable in both arguments (pass the teacher's logits detached); computed in fp32 from
     log_softmax, so each value is >= 0 up to rounding. Temperature: divide the logits before the call.
     """
+    if student_logits.shape != teacher_logits.shape or student_logits.shape[:-1] != mask.shape:
+        raise ValueError(f"token_divergence: student {tuple(student_logits.shape)}, teacher "
+                         f"{tuple(teacher_logits.shape)} and mask {tuple(mask.shape)} must agree (..., V) / (...)")
+    return logprob_divergence(masked_log_softmax(student_logits, mask), masked_log_softmax(teacher_logits, mask),
+                              mask, kind=kind, beta=beta)
+
+
+def masked_log_softmax(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """fp32 log_softmax of (..., V) logits where the (...) mask is set, of zeros elsewhere (uniform, finite): garbage
+    logits outside the mask are selected away (not multiplied), so they reach neither a value nor a gradient."""
+    keep = mask.bool()[..., None]
+    return F.log_softmax(torch.where(keep, logits.float(), torch.zeros((), device=logits.device)), -1)
+
+
+def logprob_divergence(log_s: torch.Tensor, log_p: torch.Tensor, mask: torch.Tensor, *,
+                       kind: Divergence = "reverse_kl", beta: float = 0.5) -> torch.Tensor:
+    """`token_divergence` from the two sides' log-probabilities over the vocabulary (`masked_log_softmax` of their
+    logits), for a caller that needs those log-probs for more than one quantity (on-policy distillation's loss, its
+    NLL and both KL metrics from one log_softmax per side)."""
     if kind not in ("reverse_kl", "forward_kl", "jsd"):
         raise ValueError(f"token_divergence: unknown kind {kind!r}; expected 'reverse_kl', 'forward_kl' or 'jsd'")
     if kind == "jsd" and not 0 < beta < 1:
         raise ValueError(f"token_divergence: jsd needs 0 < beta < 1, got {beta}")
-    if student_logits.shape != teacher_logits.shape or student_logits.shape[:-1] != mask.shape:
-        raise ValueError(f"token_divergence: student {tuple(student_logits.shape)}, teacher "
-                         f"{tuple(teacher_logits.shape)} and mask {tuple(mask.shape)} must agree (..., V) / (...)")
     mask = mask.bool()
-    keep = mask[..., None]
-    # select (not multiply): garbage logits outside the mask reach neither the value nor the gradient
-    log_s = F.log_softmax(torch.where(keep, student_logits.float(), torch.zeros((), device=mask.device)), -1)
-    log_p = F.log_softmax(torch.where(keep, teacher_logits.float(), torch.zeros((), device=mask.device)), -1)
     if kind == "reverse_kl":
         per_token = (log_s.exp() * (log_s - log_p)).sum(-1)  # (...)
     elif kind == "forward_kl":

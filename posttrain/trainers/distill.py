@@ -32,7 +32,9 @@ Deviations and limits:
   is not offered: with a shared tokenizer the exact per-token divergence is cheap here.
 - Full-vocabulary divergences hold both models' logits for a micro-batch: on a 150k vocabulary that limits
   micro-batches to a few hundred tokens (the budget does this; a top-k teacher is not implemented).
-- The teacher runs in fp32 on every process (no sharding of the teacher; no separate teacher server).
+- The teacher runs whole on every process (no sharding of the teacher; no separate teacher server), in the run's
+  precision: under run.mixed_precision=bf16 its forward runs in the student's bf16 autocast (its frozen weights
+  cast to bf16 once, `posttrain.lean.train`), as TRL's under bf16=True; otherwise fp32.
 - An environment's tokens are context only (neither model is taught what a tool returns); the divergence ignores
   that the student's tool calls changed them (the first point's term). Its limits, not max_new_tokens, end episodes.
 """
@@ -52,7 +54,7 @@ from posttrain import loop, sharding
 from posttrain.advantages import group_advantages, zero_variance_groups
 from posttrain.config import ConfigError, Resolved
 from posttrain.logprobs import completion_logits, masked_mean
-from posttrain.losses import policy_loss, sampler_mismatch, token_divergence
+from posttrain.losses import logprob_divergence, masked_log_softmax, policy_loss, sampler_mismatch
 from posttrain.problems import (HeldOut, Problem, Reward, build_env_reward, build_reward, load_env, load_problems,
                                 preflight, sample_and_score, tokenize_problems)
 from posttrain.rollout import SamplingParams
@@ -327,7 +329,8 @@ def update(run: DistillRun, rollouts: list, rewards: torch.Tensor, *, with_rewar
     world = run.accelerator.num_processes
     mbs = sharding.micro_batches(rows, torch.arange(len(rollouts), device=device), cfg.micro_batch_size,
                                  "token_mean", run.accelerator.process_index, world, run.budget)
-    loss_fn = functools.partial(distill_loss, cfg, run.model, run.teacher, run.vocab, with_reward, world)
+    loss_fn = functools.partial(distill_loss, cfg, run.model, run.teacher, run.vocab, with_reward, world,
+                                teacher_autocast=run.accelerator.autocast)
     return loop.optimizer_step(run.accelerator, run.model, run.optimizer, run.scheduler, mbs, loss_fn,
                                cfg.max_grad_norm, done, weights=[tokens for _, _, tokens in mbs])
 
@@ -416,7 +419,8 @@ def distill_budget(setting: int, student, teacher) -> int:
 
 # ----------------------------------------------------------------------------- the loss
 def distill_loss(cfg: DistillConfig, model, teacher, vocab: int, with_reward: bool, world: int,
-                 micro_batch: tuple[dict, float, float]) -> tuple[torch.Tensor, dict[str, float]]:
+                 micro_batch: tuple[dict, float, float], teacher_autocast=contextlib.nullcontext
+                 ) -> tuple[torch.Tensor, dict[str, float]]:
     """The loss of one of `sharding.micro_batches`: the token mean of the per-token loss over its completion
     tokens (plus reward_weight x the policy-gradient term), scaled to its share of the step's tokens times W (DDP
     averages gradients). Metrics: both KLs per token whatever the loss (comparable across runs), the NLL; with
@@ -436,22 +440,27 @@ def distill_loss(cfg: DistillConfig, model, teacher, vocab: int, with_reward: bo
     mb, share, _ = micro_batch
     ids, am = mb["input_ids"], mb["attention_mask"]
     s_logits, c = completion_logits(model, ids, am, mb["loss_mask"], temperature=cfg.temperature)  # (b, T-c, V)
-    with torch.no_grad():
+    with torch.no_grad(), teacher_autocast():  # the run's mixed precision (the accelerator's autocast)
         t_logits, _ = completion_logits(teacher, ids, am, mb["loss_mask"], temperature=cfg.temperature)
     s_logits, t_logits = s_logits[..., :vocab], t_logits[..., :vocab]
     completion_mask = mb["loss_mask"][:, c:].to(s_logits.device).bool()  # (b, T-c)
     targets = ids[:, c:].to(s_logits.device)  # (b, T-c)
-    logps = torch.log_softmax(s_logits, -1).gather(-1, targets[..., None]).squeeze(-1)  # (b, T-c)
+    # one log_softmax per side over the vocabulary, shared by the loss, the NLL and both KL metrics
+    log_s = masked_log_softmax(s_logits, completion_mask)  # (b, T-c, V) fp32
+    with torch.no_grad():
+        log_p = masked_log_softmax(t_logits, completion_mask)
+    logps = log_s.gather(-1, targets[..., None]).squeeze(-1)  # (b, T-c)
     nll = torch.where(completion_mask, -logps, torch.zeros_like(logps))
-    per_token = nll if cfg.loss == "nll" else token_divergence(s_logits, t_logits, completion_mask, kind=cfg.loss,
-                                                                beta=cfg.jsd_beta)  # (b, T-c)
+    per_token = nll if cfg.loss == "nll" else logprob_divergence(log_s, log_p, completion_mask, kind=cfg.loss,
+                                                                  beta=cfg.jsd_beta)  # (b, T-c)
     loss = masked_mean(per_token, completion_mask)
     m: dict[str, float] = {}
     with torch.no_grad():
-        sd, td = s_logits.detach(), t_logits.detach()
+        ls = log_s.detach()
         for kind in ("reverse", "forward"):
-            m[f"kl/{kind}"] = float(masked_mean(token_divergence(sd, td, completion_mask, kind=f"{kind}_kl"),
-                                                completion_mask))
+            kl = per_token.detach() if cfg.loss == f"{kind}_kl" else \
+                logprob_divergence(ls, log_p, completion_mask, kind=f"{kind}_kl")
+            m[f"kl/{kind}"] = float(masked_mean(kl, completion_mask))
         m["nll"] = float(masked_mean(nll.detach(), completion_mask))
         if "sampler_logps" in mb:  # the weights that sampled: every micro-batch runs before the optimizer step
             m.update(sampler_mismatch(logps, mb["sampler_logps"][:, c:].to(logps.device), completion_mask))

@@ -646,6 +646,22 @@ def test_token_divergence_hand_computed():
         pytest.approx(rev.item(), rel=1e-3)
 
 
+def test_logprob_divergence_from_shared_log_softmaxes_equals_token_divergence():
+    """Distillation computes one masked_log_softmax per side and derives its loss and both KL metrics from them:
+    the same values as token_divergence on the logits, garbage outside the mask kept away."""
+    g = torch.Generator().manual_seed(0)
+    s, t = torch.randn(2, 3, 7, generator=g), torch.randn(2, 3, 7, generator=g)
+    mask = torch.tensor([[1, 1, 0], [1, 0, 0]])
+    s[0, 2], t[1, 1] = float("nan"), float("inf")
+    ls, lp = losses.masked_log_softmax(s, mask), losses.masked_log_softmax(t, mask)
+    assert torch.isfinite(ls).all() and torch.isfinite(lp).all()
+    for kind in ("reverse_kl", "forward_kl", "jsd"):
+        torch.testing.assert_close(losses.logprob_divergence(ls, lp, mask, kind=kind, beta=0.3),
+                                   losses.token_divergence(s, t, mask, kind=kind, beta=0.3), atol=0, rtol=0)
+    with pytest.raises(ValueError, match="jsd needs 0 < beta < 1"):
+        losses.logprob_divergence(ls, lp, mask, kind="jsd", beta=1.0)
+
+
 def test_token_divergence_gradients_by_hand_and_masking():
     s = torch.tensor([[[0.0, 0.0], [float("nan"), 1.0]]], requires_grad=True)  # the second position is masked
     t = torch.tensor([[[math.log(3.0), 0.0], [0.0, float("inf")]]])

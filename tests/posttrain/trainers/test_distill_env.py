@@ -131,6 +131,15 @@ def test_every_loss_covers_the_sampled_tokens_only_by_hand(student, teacher):
         if T == 1.0:  # the sampler's log-probs (temperature 1) are the loss's own
             assert m["mismatch/kl"] == pytest.approx(0.0, abs=1e-6)
             assert m["mismatch/max_ratio"] == pytest.approx(1.0, abs=1e-4)
+        if loss in ("reverse_kl", "forward_kl") and T == 1.0:  # the metric of the loss's own kind is the loss
+            assert m[f"kl/{loss.split('_')[0]}"] == pytest.approx(float(value), rel=1e-6)
+    # the teacher runs in the run's precision (the accelerator's autocast): bf16 moves its logits by bf16 rounding
+    cfg = DistillConfig(loss="reverse_kl")
+    with torch.no_grad():
+        v32, _ = distill_loss(cfg, s_model, t_model, len(tok), False, 1, (rows, 1.0, 1.0))
+        v16, _ = distill_loss(cfg, s_model, t_model, len(tok), False, 1, (rows, 1.0, 1.0),
+                              teacher_autocast=lambda: torch.autocast("cpu", dtype=torch.bfloat16))
+    assert float(v16) != float(v32) and float(v16) == pytest.approx(float(v32), rel=0.1, abs=0.02)
 
 
 @pytest.mark.learning
