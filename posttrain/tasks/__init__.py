@@ -110,7 +110,8 @@ def load_split(task_cfg, split: str) -> list[dict]:
                                            split="train" if split == "train" else "test")]
     task = _task_or_config_error(task_cfg.name)
     n = task_cfg.n_train if split == "train" else task_cfg.n_eval
-    rows = task.make_examples(n, task_cfg.seed, split, **difficulty_kwargs(task, task_cfg))
+    rows = task.make_examples(n, task_cfg.seed, split, **difficulty_kwargs(task, task_cfg),
+                              **option_kwargs(task, task_cfg))
     validate_rows(rows, "sft", f"task {task_cfg.name} ({split})")
     return rows
 
@@ -132,6 +133,20 @@ def difficulty_kwargs(task: Task, task_cfg) -> dict[str, int]:
         raise ConfigError(f"task.difficulty: task {task.NAME!r} has levels {', '.join(map(str, levels))} "
                           f"(0: its default), got {level}")
     return {"difficulty": level}
+
+
+def option_kwargs(task: Task, task_cfg) -> dict[str, Any]:
+    """`task.options` as keyword arguments of the task's make_examples, checked against the task's OPTIONS
+    ({name: description}); a ConfigError names an option the task does not have."""
+    from posttrain.errors import ConfigError
+
+    options = dict(getattr(task_cfg, "options", None) or {})
+    known = getattr(task, "OPTIONS", None) or {}
+    for name in options:
+        if name not in known:
+            have = f"its options: {', '.join(sorted(known))}" if known else "it has none"
+            raise ConfigError(f"task.options.{name}: task {task.NAME!r} has no option {name!r} ({have})")
+    return options
 
 
 def columns(task_cfg) -> dict[str, str]:

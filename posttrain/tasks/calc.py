@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 from typing import Any, Literal, Sequence
 
+from posttrain.errors import ConfigError
 from posttrain.verifiers.envs.base import format_tool_call
 from posttrain.verifiers.envs.calc import CalcEnv, calculator, last_integer
 
@@ -31,11 +32,21 @@ gold_quality = gold_breakdown = gold_key = gold_prefer = win_rate = None
 DIFFICULTY = 2
 EVAL_FRACTION = 0.2
 RECOVERY_EVERY = 8  # one demonstration in this many makes a bad call first
+OPTIONS = {"tool_rate": "fraction of the training demonstrations that call the calculator (0-1, default 1); the "
+                        "others answer at once (\"Answer: N\"), as a demonstrator sure of its arithmetic"}
+DIRECT_PREFIX = "Answer: "  # a direct answer's first token differs from a call's: calling or not is one choice
 
 
 def _split_of(expression: str) -> str:
     h = int(hashlib.sha1(expression.encode()).hexdigest()[:8], 16)
     return "eval" if h % 1000 < EVAL_FRACTION * 1000 else "train"
+
+
+def _uses_tool(expression: str, tool_rate: float) -> bool:
+    """Whether the demonstration of `expression` calls the calculator: a hash of the expression (salted apart
+    from the split's), so a problem keeps its kind whatever n, seed and the other rows."""
+    h = int(hashlib.sha1(b"tool:" + expression.encode()).hexdigest()[:8], 16)
+    return h % 10_000 < tool_rate * 10_000
 
 
 def _bad_spelling(expression: str, k: int) -> str:
@@ -52,10 +63,13 @@ def refused_call(bad: str) -> list[dict[str, Any]]:
     raise AssertionError(f"the calculator accepted {bad!r}")
 
 
-def demonstration(problem: dict[str, Any], recover: bool, k: int = 0) -> list[dict[str, Any]]:
-    """The conversation of one problem solved with the tool (after a refused call first when `recover`)."""
+def demonstration(problem: dict[str, Any], recover: bool, k: int = 0, tool: bool = True) -> list[dict[str, Any]]:
+    """The conversation of one problem solved with the tool (after a refused call first when `recover`), or
+    answered at once without it (`tool=False`)."""
     env = CalcEnv()
     messages = env.reset(problem)
+    if not tool:
+        return messages + [{"role": "assistant", "content": DIRECT_PREFIX + problem["answer"]}]
     if recover:
         messages += refused_call(_bad_spelling(problem["expression"], k))
     messages += [{"role": "assistant", "content": format_tool_call("calculator", {"expression": problem["expression"]})},
@@ -64,23 +78,31 @@ def demonstration(problem: dict[str, Any], recover: bool, k: int = 0) -> list[di
     return messages
 
 
-def make_examples(n: int, seed: int, split: Literal["train", "eval"]) -> list[dict[str, Any]]:
+def make_examples(n: int, seed: int, split: Literal["train", "eval"], tool_rate: float = 1.0) -> list[dict[str, Any]]:
     """`n` rows of `split`: {"messages", "train_from", "prompt" (the messages before the answer), "completion" (the
-    answer), "answer", "meta": {"task", "reference", "expression"}}."""
+    answer), "answer", "meta": {"task", "reference", "expression", "tool"}}. A fraction `tool_rate` of the training
+    rows calls the calculator (about one in RECOVERY_EVERY of those after a refused call), the rest answer at once;
+    every held-out row calls it (SFT's evaluation then scores the answer after the tool's result)."""
+    if isinstance(tool_rate, bool) or not isinstance(tool_rate, (int, float)) or not 0 <= tool_rate <= 1:
+        raise ConfigError(f"task.options.tool_rate: a fraction from 0 to 1, got {tool_rate!r}")
     out: list[dict[str, Any]] = []
     seen: set[str] = set()
+    tool_rows = 0
     batch = 0
     while len(out) < n:
         for p in CalcEnv.problems(4 * n + 64, seed=seed * 1000 + batch, difficulty=DIFFICULTY):
             if p["expression"] in seen or _split_of(p["expression"]) != split:
                 continue
             seen.add(p["expression"])
-            k = len(out)
-            messages = demonstration(p, recover=k % RECOVERY_EVERY == RECOVERY_EVERY - 1, k=k)
+            tool = split == "eval" or _uses_tool(p["expression"], tool_rate)
+            k = tool_rows
+            tool_rows += tool
+            messages = demonstration(p, recover=tool and k % RECOVERY_EVERY == RECOVERY_EVERY - 1, k=k, tool=tool)
             # the shape posttrain.data gives a conversational SFT row: every assistant turn trained
             out.append({"messages": messages, "train_from": 0, "prompt": messages[:-1],
                         "completion": messages[-1]["content"], "answer": p["answer"],
-                        "meta": {"task": NAME, "reference": p["answer"], "expression": p["expression"]}})
+                        "meta": {"task": NAME, "reference": p["answer"], "expression": p["expression"],
+                                 "tool": tool}})
             if len(out) == n:
                 break
         batch += 1

@@ -15,10 +15,14 @@ NAME = "tiny-calc-direct"
 VERIFIER = None
 GOLD_METRICS = calc.GOLD_METRICS
 gold_quality = gold_breakdown = gold_key = gold_prefer = win_rate = None
+# tiny-calc's recipe sets task.options.tool_rate; the same recipe with task.name=tiny-calc-direct takes it and
+# answers every row directly all the same
+OPTIONS = {"tool_rate": "accepted and ignored (tiny-calc's option): every row is answered directly"}
 
 
-def make_examples(n: int, seed: int, split: Literal["train", "eval"]) -> list[dict[str, Any]]:
-    """`n` rows of `split`: {"prompt": the question, "completion": the answer, "answer", "meta"}."""
+def make_examples(n: int, seed: int, split: Literal["train", "eval"], tool_rate: float = 1.0) -> list[dict[str, Any]]:
+    """`n` rows of `split`: {"prompt": the question, "completion": the answer, "answer", "meta"}; the problems of
+    tiny-calc's rows, whatever `tool_rate`."""
     return [{"prompt": calc.problem_of(r)["prompt"], "completion": r["answer"], "answer": r["answer"],
              "meta": r["meta"]} for r in calc.make_examples(n, seed, split)]
 
