@@ -52,10 +52,9 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             decides); on other CPUs bf16 is emulated, 2-5x slower than fp32, and `--real-bf16 yes` forces them.
   multiturn multi-turn episodes with a tool (posttrain.rollout.multiturn; a random tiny chat model whose turns end
             at eos after a few tokens, every turn answered by the calculator, <= 4 turns) against single-turn
-            rollouts of the same number of sampled tokens (ignore_eos) at each batch size, with a tool result's
-            tokens fed in one step (the default) and one per step (env_chunk=1), alternately; the time ratios next
-            to the ratio of steps, (sampled tokens + tool results) / sampled, and the tools' seconds. Ours only
-            (TRL's tool-calling GRPO: the tools section).
+            rollouts of the same number of sampled tokens (ignore_eos) at each batch size; the time ratio next to
+            the ratio of decoding steps, (sampled + environment tokens) / sampled, and the tools' seconds. Ours
+            only (TRL's tool-calling GRPO: the tools section).
   tools     one multi-turn GRPO step in the calc environment: `posttrain grpo` with grpo.env=calc (the trainer, through
             the CLI) against TRL's GRPOTrainer with the calculator as a tool (`tools=[calculator]`,
             max_tool_calling_iterations, its tool-calling loop on transformers' generate), on the tiny chat model
@@ -1722,13 +1721,13 @@ def bench_multiturn(args) -> dict:
         model.lm_head.weight[tok.eos_token_id] = 0.45 * h / h.norm()
     rows_out = []
     print(f"\n{args.presets[0]}, calculator environment (every turn that ends at eos calls it; <= 4 turns x 32 tokens)")
-    print(f"{'batch':>5} {'turns':>6} {'sampled':>8} {'env tok':>8} {'episodes s':>11} {'1/step s':>9} "
-          f"{'single-turn s':>14} {'ratio':>7} {'1/step ratio':>13} {'steps ratio':>12} {'tool s':>7}")
+    print(f"{'batch':>5} {'turns':>6} {'sampled':>8} {'env tok':>8} {'episodes s':>11} {'single-turn s':>14} "
+          f"{'ratio':>7} {'steps ratio':>12} {'tool s':>7}")
     for B in args.batches:
         ps = problems[:B]
 
-        def episodes(seed=0, env_chunk=None):
-            return generate_episodes(model, tok, env, ps, n=1, seed=seed, env_chunk=env_chunk)
+        def episodes(seed=0):
+            return generate_episodes(model, tok, env, ps, n=1, seed=seed)
 
         out = episodes()
         sampled = sum(sum(r.completion_mask) for r in out)
@@ -1739,31 +1738,23 @@ def bench_multiturn(args) -> dict:
             return generate(model, tok, firsts[:B], max_new_tokens=per_row, ignore_eos=True, seed=seed)
 
         single()
-        episodes(0, 1)
-        t_ep, t_one_per_step, t_one = [], [], []
-        for r in range(args.repeats):  # alternating: chunked episodes, one environment token per step, single-turn
+        t_ep, t_one = [], []
+        for r in range(args.repeats):
             t_ep.append(_timed(lambda: episodes(0), "cpu"))
-            t_one_per_step.append(_timed(lambda: episodes(0, 1), "cpu"))
             t_one.append(_timed(lambda: single(0), "cpu"))
-        scale = sampled / (per_row * B)
-        med_ep, med_1, med_one = (statistics.median(t_ep), statistics.median(t_one_per_step),
-                                  statistics.median(t_one) * scale)
+        med_ep, med_one = statistics.median(t_ep), statistics.median(t_one) * sampled / (per_row * B)
         turns = sum(len(r.extras["episode"]["turns"]) for r in out) / B
-        replies = sum(sum(t["env_tokens"] > 0 for t in r.extras["episode"]["turns"]) for r in out)
         tool_s = sum(c["seconds"] for r in out for t in r.extras["episode"]["turns"] for c in t["tool_calls"])
         row = dict(batch=B, turns=turns, sampled=sampled, env_tokens=env_tokens, episodes_s=med_ep,
-                   one_per_step_s=med_1, single_s=med_one, ratio=med_ep / med_one, one_per_step_ratio=med_1 / med_one,
-                   steps_ratio=(sampled + replies) / sampled, tool_s=tool_s, episodes_times=t_ep,
-                   one_per_step_times=t_one_per_step, single_times=t_one)
+                   single_s=med_one, ratio=med_ep / med_one, steps_ratio=(sampled + env_tokens) / sampled,
+                   tool_s=tool_s, episodes_times=t_ep, single_times=t_one)
         rows_out.append(row)
-        print(f"{B:>5} {turns:>6.2f} {sampled:>8} {env_tokens:>8} {med_ep:>11.3f} {med_1:>9.3f} {med_one:>14.3f} "
-              f"{row['ratio']:>6.2f}x {row['one_per_step_ratio']:>12.2f}x {row['steps_ratio']:>11.2f}x "
-              f"{tool_s:>7.3f}", flush=True)
+        print(f"{B:>5} {turns:>6.2f} {sampled:>8} {env_tokens:>8} {med_ep:>11.3f} {med_one:>14.3f} "
+              f"{row['ratio']:>6.2f}x {row['steps_ratio']:>11.2f}x {tool_s:>7.3f}", flush=True)
     print("ratio = episodes time / single-turn time for the same sampled tokens (single-turn: ignore_eos, the mean "
-          "sampled tokens per row, scaled to the episodes' exact count); episodes feed a tool result's tokens in "
-          "one step (env_chunk 32), 1/step: one per decoding step (env_chunk=1), timed alternately; steps ratio = "
-          "(sampled tokens + tool results) / sampled: the ratio expected when a tool result costs one step, "
-          "before tool time, turn bookkeeping and the batch's longest episode.")
+          "sampled tokens per row, scaled to the episodes' exact count); steps ratio = (sampled + environment "
+          "tokens) / sampled: the ratio expected when an environment token costs one decoding step, as it does "
+          "here (fed beside the other rows' sampling), before tool time and turn bookkeeping.")
     return dict(rows=rows_out)
 
 

@@ -540,49 +540,6 @@ class LeanLlama:
                 x = x + down_b
         return self._logits(x)  # (B, V)
 
-    def extend(self, tok, valid, pos, col: int, last):
-        """Several tokens per row in one step, after the cached columns: tok / valid / pos (B, K), written to cache
-        columns col .. col+K-1 (a row's invalid slots are masked for every later step); each query sees the
-        cache's keys before `col` and the chunk's valid keys up to itself. Returns the logits at slot `last[b]`
-        of each row (B, V; zeros for a row without a valid slot). For the multi-turn loop: an environment
-        message's tokens in one step, beside rows that feed one sampled token (valid only at slot 0) or none.
-        Only the valid tokens go through the projections and the MLP (packed, N = valid.sum() rows); attention
-        runs on the (B, K) layout, the invalid slots' queries and keys zero."""
-        B, K = tok.shape
-        T = col + K
-        H, Hkv, D = self.H, self.Hkv, self.D
-        flat = valid.reshape(-1).nonzero().view(-1)  # (N,) packed slot -> b * K + j
-        N = flat.numel()
-        self.key_bias[:B, :, :, col:T] = torch.where(valid, 0.0, float("-inf")).to(self.dtype)[:, None, None, :]
-        causal = torch.ones(K, K, dtype=torch.bool, device=self.device).tril()
-        chunk = torch.zeros(K, K, device=self.device, dtype=self.dtype).masked_fill_(~causal, float("-inf"))
-        bias = self.key_bias[:B, :1, :, :T].expand(B, 1, K, T).clone()  # (B, 1, K, T): kv heads share a row's mask
-        bias[:, :, :, col:] += chunk
-        cis = self.cis.index_select(0, pos.reshape(-1).index_select(0, flat))[:, None]  # (N, 1, D/2)
-        x = self._embed(tok.reshape(-1).index_select(0, flat))  # (N, d)
-        wide = torch.zeros(B * K, H + 2 * Hkv, D, device=self.device, dtype=self.dtype)
-        for li, layer in enumerate(self.layers):
-            c1, qkv_w, qkv_b, o_w, o_b = layer[:5]
-            qkv = self._lin(self._norm(x, c1), qkv_w, qkv_b).view(N, H + 2 * Hkv, D)
-            wide[flat, :H + Hkv] = self._rotate(qkv[:, :H + Hkv], cis)
-            wide[flat, H + Hkv:] = qkv[:, H + Hkv:]
-            heads = wide.view(B, K, H + 2 * Hkv, D).transpose(1, 2)  # (B, NH, K, D)
-            self.k[li, :B, :, col:T] = heads[:, H:H + Hkv]
-            self.v[li, :B, :, col:T] = heads[:, H + Hkv:]
-            a = self._attend(heads[:, :H], self.k[li, :B, :, :T], self.v[li, :B, :, :T], bias)  # (B, H, K, D)
-            a = a.transpose(1, 2).reshape(B * K, H * D).index_select(0, flat)
-            x = self._acc(x, a, o_w)
-            if o_b is not None:
-                x = x + o_b
-            x = self._mlp(x, layer)
-        at = torch.full((B * K,), -1, dtype=torch.long, device=self.device)
-        at[flat] = torch.arange(N, device=self.device)
-        pick = at.view(B, K)[torch.arange(B, device=self.device), last]  # (B,) packed index of each row's last
-        out = torch.zeros(B, self.V, device=self.device, dtype=self.dtype)
-        has = pick >= 0
-        out[has] = self._logits(x.index_select(0, pick[has]))
-        return out
-
     def _decode_half(self, x, cis, bias, col: int):
         """`decode` in a half dtype (module docstring): x (B, d) embedded tokens, cis (B, 1, D/2); the key mask is
         read as (B, Hkv, 1, T) for SDPA (`bias` is its (B*Hkv, 1, T) view, unused)."""

@@ -4,7 +4,6 @@ else. Both expose the calls the engine's loop uses:
     start(rows, cols, max_pos)           allocate the cache for one micro-batch
     prefill(ids, valid, pos, row_of)     prompts (U, Tp) -> next-token logits for every row (B, V)
     decode(tok, pos, col)                one token per active row (B, 1) -> logits (B, V)
-    extend(tok, valid, pos, col, last)   up to K tokens per row (B, K) -> logits at slot last[b] (B, V)
     select(order, col)                   keep / reorder active rows (finished rows dropped)
     release()                            drop the cache
 The lean decoder also has a static-shape step (`start(..., static=True)`, `st` input buffers, `step()`: all rows
@@ -63,15 +62,6 @@ class HFForward:
         B = tok.shape[0]
         return self._call(input_ids=tok, attention_mask=self.mask[:B, :col + 1], position_ids=pos[:, None],
                           past_key_values=self.past)
-
-    def extend(self, tok, valid, pos, col: int, last):
-        """Several tokens per row after the cached columns (LeanLlama.extend): the invalid slots are masked."""
-        B, K = tok.shape
-        self.mask[:B, col:col + K] = valid.long()
-        out = self.model(input_ids=tok, attention_mask=self.mask[:B, :col + K], position_ids=pos,
-                         past_key_values=self.past, use_cache=True)
-        self.past = out.past_key_values
-        return out.logits[torch.arange(B, device=tok.device), last]
 
     def select(self, order: list[int], col: int) -> None:
         if order == list(range(len(order))):

@@ -16,12 +16,9 @@ sampled token and every environment token, in order. What that guarantees:
   rest is tokenized (`add_special_tokens=False`) and appended. A template that rewrites earlier turns (drops past
   reasoning, or closes an assistant turn with something other than the eos token) fails that check, and the
   episode is refused with one ModelError line: this engine does not start new segments.
-- Each row keeps its KV cache across turns: only the environment's new tokens are fed, up to `env_chunk` (32) of
-  them in one step (`extend`), in the same batched step in which the other rows sample their next token: a tool
-  result of n tokens costs a row ceil(n / 32) steps instead of n. The lean decoder packs the step's valid tokens
-  (the projections and the MLP see only them); a step that feeds several tokens spends that many cache columns
-  for every row, so it is taken only while the cache has the columns to spare. The Hugging Face forward on a
-  CPU feeds one per step (its wide step would compute every row's empty slots too).
+- Each row keeps its KV cache across turns: only the environment's new tokens are fed. They are fed one per
+  decoding step, in the same batched step in which the other rows sample (teacher forcing; a separate chunked
+  prefill of them is not implemented), so an environment token costs what a sampled one does.
 - A row whose turn ended with tool calls waits for them while the others decode: its calls run in the
   `ToolRunner`'s threads, concurrently with every other row's; the waiting row's cache column of each step is
   masked out (its position does not advance), so its sequence is the same as without the wait. Pause columns are
@@ -60,18 +57,16 @@ from .records import Rollout
 from .sampling import Sampler, SamplingParams, row_uniforms
 
 PAUSE_SLACK = 0.5  # cache columns for waiting rows, as a fraction of limits.max_total_tokens
-ENV_CHUNK = 32  # most environment tokens a row feeds in one step (the lean decoder; 1: one per step)
 
 
 def generate_episodes(model, tokenizer, env, problems: Sequence[dict], sampling: SamplingParams | None = None, *,
                       prompt_keys: Sequence[int] | None = None, runner=None,
                       max_batch_tokens: int = DEFAULT_MAX_BATCH_TOKENS, backend: str | None = None,
-                      env_chunk: int | None = None, **overrides) -> list[Rollout]:
+                      **overrides) -> list[Rollout]:
     """`n` episodes of `env` for each problem row; Rollouts ordered by (problem, sample), each with its reward
     (`env.reward`) and `extras["episode"]`. `sampling` / `overrides` as in `generate` (`max_new_tokens`, stop
     strings and `ignore_eos` do not apply: the environment's `limits` do). `runner`: a ToolRunner to reuse (one is
-    made and closed otherwise). `env_chunk`: most environment tokens a row feeds per step (None: ENV_CHUNK on the
-    lean decoder or a GPU, 1 for the Hugging Face forward on a CPU, whose wide steps compute every row's slots)."""
+    made and closed otherwise)."""
     from posttrain.verifiers.envs import ToolRunner
 
     params = dataclasses.replace(sampling or SamplingParams(), **overrides).validate()
@@ -92,10 +87,6 @@ def generate_episodes(model, tokenizer, env, problems: Sequence[dict], sampling:
     backend = default_backend() if backend in (None, "vllm") else backend
     steps = limits.max_total_tokens + int(PAUSE_SLACK * limits.max_total_tokens)
     fwd, _ = select_backend(model, max(len(p) for p in ids) + steps, backend)
-    if env_chunk is None:
-        env_chunk = ENV_CHUNK if not isinstance(fwd, HFForward) or fwd.device.type != "cpu" else 1
-    if env_chunk < 1:
-        raise ValueError(f"generate_episodes: env_chunk must be >= 1, got {env_chunk}")
     inner = unwrap_model(model)
     vocab = int(inner.get_output_embeddings().weight.shape[0])
     eos = set(_eos_ids(model, tokenizer))
@@ -112,7 +103,7 @@ def generate_episodes(model, tokenizer, env, problems: Sequence[dict], sampling:
         with torch.inference_mode():
             for rows in plan_micro_batches([len(p) for p in ids], params.n, steps, max_batch_tokens):
                 batch = _Batch(fwd, env, tokenizer, runner, params, rows, ids, first, problems, keys, eos, pad,
-                               vocab, steps, env_chunk)
+                               vocab, steps)
                 out.update(batch.run())
     finally:
         fwd.release()
@@ -135,13 +126,11 @@ def _hide(fwd, rows: list[int], col: int) -> None:
 class _Batch:
     """One micro-batch of episodes: the per-row state machine sample -> (wait -> force ->) sample ... -> done."""
 
-    def __init__(self, fwd, env, tokenizer, runner, params, rows, ids, first, problems, keys, eos, pad, vocab, steps,
-                 env_chunk: int = 1):
+    def __init__(self, fwd, env, tokenizer, runner, params, rows, ids, first, problems, keys, eos, pad, vocab, steps):
         from posttrain.verifiers.envs import Episode
 
         self.fwd, self.env, self.tok, self.runner, self.params = fwd, env, tokenizer, runner, params
         self.rows, self.ids, self.eos, self.pad, self.steps = rows, ids, eos, pad, steps
-        self.env_chunk = env_chunk
         self.first = first
         self.limits, self.tools = env.limits, env.tool_functions()
         self.sampler = Sampler(params, vocab)
@@ -189,12 +178,7 @@ class _Batch:
             if waiting and cols - col <= need:  # no pause column to spare: wait for the tools first
                 self._collect(block=True, only=waiting)
                 continue
-            # what each row feeds this step: its sampled token, or up to env_chunk of its environment tokens
-            force = [b for b in active if self.mode[b] == "force"]
-            K = min(self.env_chunk, max((len(self.queue[b]) for b in force), default=1))
-            if K > 1 and cols - col - K < need:  # a wide step's columns are spent by every row: only with spares
-                K = 1
-            feed: list[list[int]] = [[] for _ in range(B)]
+            tok_in = [self.pad] * B
             sample = [b for b in active if self.mode[b] == "sample"]
             if sample:
                 idx = torch.tensor(sample, dtype=torch.long, device=dev)
@@ -204,27 +188,21 @@ class _Batch:
                     self._record(b, t, 1, a, p)
                     self.turn[b].append(t)
                     self.n_sampled[b] += 1
-                    feed[b] = [t]
-            for b in force:
-                feed[b], self.queue[b] = self.queue[b][:K], self.queue[b][K:]
-                for t in feed[b]:
-                    self._record(b, t, 0, 0.0, 0.0)
-            if K == 1:
-                tok_in = [f[0] if f else self.pad for f in feed]
-                logits = fwd.decode(torch.tensor(tok_in, dtype=torch.long, device=dev).view(B, 1),
-                                    torch.tensor(self.pos, dtype=torch.long, device=dev), col)
-                idle = [b for b in range(B) if not feed[b]]
-                if idle:
-                    _hide(fwd, idle, col)
-            else:  # one wide step; the slots a row leaves empty are masked by `extend`
-                tok_in = torch.tensor([f + [self.pad] * (K - len(f)) for f in feed], dtype=torch.long, device=dev)
-                valid = torch.tensor([[j < len(f) for j in range(K)] for f in feed], device=dev)
-                pos = torch.tensor(self.pos, dtype=torch.long, device=dev)[:, None] + torch.arange(K, device=dev)
-                last = torch.tensor([max(len(f) - 1, 0) for f in feed], dtype=torch.long, device=dev)
-                logits = fwd.extend(tok_in, valid, pos, col, last)
-            col += K
+                    tok_in[b] = t
             for b in active:
-                self.pos[b] += len(feed[b])
+                if self.mode[b] == "force":
+                    t = self.queue[b].pop(0)
+                    self._record(b, t, 0, 0.0, 0.0)
+                    tok_in[b] = t
+            fed = set(active)
+            logits = fwd.decode(torch.tensor(tok_in, dtype=torch.long, device=dev).view(B, 1),
+                                torch.tensor(self.pos, dtype=torch.long, device=dev), col)
+            idle = [b for b in range(B) if b not in fed]
+            if idle:
+                _hide(fwd, idle, col)
+            col += 1
+            for b in active:
+                self.pos[b] += 1
                 if self.mode[b] == "force":
                     if not self.queue[b]:
                         self.mode[b] = "sample"

@@ -145,37 +145,6 @@ def test_a_rows_episode_does_not_depend_on_its_neighbours_or_on_tool_time(chat_l
         assert r.logprobs == pytest.approx(ref.logprobs, abs=1e-4)
 
 
-@pytest.mark.parametrize("backend", ["lean", "hf"])
-def test_environment_tokens_fed_several_per_step_give_the_same_episodes(chat_lm, backend, monkeypatch):
-    """A tool result's tokens in one `extend` step (the lean default) or one per decode step (env_chunk=1): the same
-    trajectories; the wide steps happened (and cost fewer steps); the HF forward on a CPU feeds one per step."""
-    from posttrain.rollout import LeanLlama
-    from posttrain.rollout.backends import HFForward
-
-    model, tok = chat_lm
-    calls = {"extend": 0, "decode": 0}
-    for cls in (LeanLlama, HFForward):
-        for name in calls:
-            def spy(self, *a, _f=getattr(cls, name), _n=name, **k):
-                calls[_n] += 1
-                return _f(self, *a, **k)
-            monkeypatch.setattr(cls, name, spy)
-    one = generate_episodes(model, tok, Echo(), PROBLEMS, n=2, seed=5, backend=backend, env_chunk=1)
-    steps_one, calls["decode"] = calls["decode"], 0
-    assert calls["extend"] == 0
-    wide = generate_episodes(model, tok, Echo(), PROBLEMS, n=2, seed=5, backend=backend,
-                             env_chunk=None if backend == "lean" else 8)
-    assert sum(r.extras["episode"]["env_tokens"] for r in one) > 2 * len(one)  # several tokens per tool result
-    for a, b in zip(one, wide):
-        assert a.completion_ids == b.completion_ids and a.completion_mask == b.completion_mask
-        assert a.logprobs == pytest.approx(b.logprobs, abs=1e-4)
-    assert calls["extend"] > 0 and calls["extend"] + calls["decode"] < steps_one
-    if backend == "hf":  # by default the HF forward on a CPU feeds one per step (its wide step pads every row)
-        calls["extend"] = 0
-        generate_episodes(model, tok, Echo(), PROBLEMS, n=2, seed=5, backend=backend)
-        assert calls["extend"] == 0
-
-
 def sleepy(seconds: float) -> str:
     """Sleep, then say so.
 
@@ -235,7 +204,5 @@ def test_bad_arguments_and_limits_are_one_line_errors(chat_lm):
         generate_episodes(model, tok, Echo(), PROBLEMS[:1], stop=["x"])
     with pytest.raises(ValueError, match="prompt_keys has 1 entries for 2 problems"):
         generate_episodes(model, tok, Echo(), PROBLEMS[:2], prompt_keys=[0])
-    with pytest.raises(ValueError, match="env_chunk must be >= 1, got 0"):
-        generate_episodes(model, tok, Echo(), PROBLEMS[:1], env_chunk=0)
     with pytest.raises(ValueError, match="Limits.max_turns must be a positive integer"):
         Limits(max_turns=0)
