@@ -9,7 +9,7 @@ Pure Python (no torch). The problems, the tool and the reward are the environmen
   and the call format), the question, an assistant turn that calls the calculator, the tool's answer, and the final
   answer. About one demonstration in eight first makes a malformed call (`347 x 582`, `347×582`: the calculator's
   strict grammar refuses them), gets the error back, and calls again correctly: the model sees a recovery.
-  `task.options.tool_rate` (the recipe: 0.3) keeps that share of the training demonstrations and has the others
+  `task.options.tool_rate` (the recipe: 0.4) keeps that share of the training demonstrations and has the others
   answer at once ("Answer: 673736"), so the SFT model knows the call but mostly answers in its head; GRPO's reward
   then teaches it to call (RESULTS.md, Recipes > tiny-calc).
 - `answer` (the exact result) is the reference; GRPO and evaluation take the question (the first user message) as
