@@ -64,7 +64,7 @@ class TaskConfig:
     difficulty: int = 0
     """Difficulty level of a task that has levels (word-math: 1-3); 0: the task's default."""
     options: dict[str, Any] = field(default_factory=dict)
-    """Options of the task's generator, each task's own (its OPTIONS; tiny-calc: `task.options.tool_rate=0.3`)."""
+    """Options of the task's generator, each task's own (its OPTIONS; tiny-calc: `task.options.tool_rate=0.4`)."""
     train_file: str | None = None
     """Optional JSONL/Parquet/dataset dir replacing the generated training set."""
     eval_file: str | None = None
