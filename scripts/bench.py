@@ -1631,10 +1631,11 @@ def _real_trainers(args, limits: dict, parts: set) -> dict:
                   flush=True)
             ctx.cleanup()
 
-    def online(ctx, label: str, line, extra=lambda ctx: {}) -> None:
+    def online(ctx, label, line, extra=lambda ctx: {}) -> None:
         """GRPO's and distill's rows: each side's timed steps of one run per precision (its first steps warm-up);
-        `line(ctx, phases)` prints what else the row measured, `extra(ctx)` stores it."""
+        `label(ctx)` names the row, `line(ctx, phases)` prints what else it measured, `extra(ctx)` stores it."""
         try:
+            label = label(ctx)
             for bf16 in precisions:
                 t_ours, phases = ctx.runners["posttrain"](bf16=bf16)
                 t_trl = ctx.runners["trl"](bf16=bf16)
@@ -1644,12 +1645,12 @@ def _real_trainers(args, limits: dict, parts: set) -> dict:
         finally:
             ctx.cleanup()
 
-    online(_grpo_setup(args, real=True), f"GRPO, 2 x 4 x <= {args.max_new_tokens} tok",
+    online(_grpo_setup(args, real=True), lambda ctx: f"GRPO, 2 x {ctx.group} x <= {args.max_new_tokens} tok",
            lambda ctx, ph: f"  completion tokens per row: posttrain {ph['completion_tokens']:.1f}, TRL "
                            f"{ctx.trl_completion_tokens:.1f}; posttrain sample {ph['sample']:.2f} s, update "
                            f"{ph['train']:.2f} s",
            lambda ctx: {"trl_completion_tokens": ctx.trl_completion_tokens})
-    online(_distill_setup(args, real=True), f"distill, 8 x <= {args.max_new_tokens} tok",
+    online(_distill_setup(args, real=True), lambda ctx: f"distill, {ctx.per_step} x <= {args.max_new_tokens} tok",
            lambda ctx, ph: f"  posttrain: {ph['completion_tokens']:.1f} completion tokens per row, sample "
                            f"{ph['sample']:.2f} s, teacher + update {ph['train']:.2f} s (reverse KL over the "
                            f"vocabulary; TRL beta 1)")
