@@ -54,7 +54,7 @@ Contract
   parameter's version counter moved, so an optimizer step between calls is always seen (torch's fused
   AdamW writes weights without bumping the counters: `loop.build_optimizer` bumps them after each step with
   `torch.autograd.graph.increment_version`; do the same in a loop of your own with a fused optimizer). Not
-  thread-safe: one `generate` at a time per model. `tune_malloc` raises glibc's malloc thresholds
+  thread-safe: one `generate` at a time per model. `tune_malloc` sets glibc's malloc to keep freed memory
   once per process (see there). Measured speed: `scripts/bench.py`.
 - Multi-turn. `posttrain.rollout.multiturn.generate_episodes(model, tokenizer, env, problems, ...)` samples
   episodes of an environment with tools (posttrain.verifiers.envs) through the same forwards and sampler: one
