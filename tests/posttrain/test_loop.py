@@ -474,3 +474,29 @@ def test_nonfinite_grads_names_the_parameters_whose_gradient_is_not_finite():
     model[1].weight.grad[0, 1] = float("nan")
     model[0].bias.grad[2] = float("inf")
     assert nonfinite_grads(model) == " (non-finite gradients in 0.bias, 1.weight: 2 of 4 parameters)"
+
+
+def test_tune_malloc_keeps_large_blocks_in_the_heap_once_per_process(monkeypatch):
+    """`runtime.tune_malloc` turns glibc's mmap of large blocks off (M_MMAP_MAX 0) and raises the trim threshold,
+    once; POSTTRAIN_NO_MALLOPT=1 or a platform other than Linux leaves malloc alone."""
+    import sys
+
+    from posttrain import runtime
+
+    calls = []
+
+    class FakeLibc:
+        def mallopt(self, param, value):
+            calls.append((param, value))
+            return 1
+
+    monkeypatch.setattr(runtime.ctypes, "CDLL", lambda name: FakeLibc())
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.delenv("POSTTRAIN_NO_MALLOPT", raising=False)
+    monkeypatch.setattr(runtime, "_malloc_tuned", False)
+    assert runtime.tune_malloc() is True
+    assert calls == [(-4, 0), (-1, 512 << 20)]  # M_MMAP_MAX, M_TRIM_THRESHOLD
+    assert runtime.tune_malloc() is True and len(calls) == 2  # once per process
+    monkeypatch.setattr(runtime, "_malloc_tuned", False)
+    monkeypatch.setenv("POSTTRAIN_NO_MALLOPT", "1")
+    assert runtime.tune_malloc() is False and len(calls) == 2
