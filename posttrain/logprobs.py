@@ -24,7 +24,8 @@ by DDP / torch.compile, no gradient checkpointing, no dropout; fp32 or under bf1
 `posttrain.lean.lean_forward` instead of the model's forward, and a fused log-prob with a cheaper
 backward: the same numbers within fp32 rounding, faster for a tiny-model update step (RESULTS.md). Turn it
 off with `posttrain.lean.ENABLED = False` or POSTTRAIN_LEAN_TRAIN=0. Rows that share their prompt
-(GRPO's K completions per prompt) run that prompt once on this path (`lean.lean_forward_shared`).
+(GRPO's K completions per prompt) run that prompt once on this path (`lean.lean_forward_shared`), and the
+vocabulary-wide head runs on the scored columns only (`_scored_head`).
 
 Memory. Logits are requested only from the first completion column on (`logits_to_keep`, when the
 model accepts it), and log-probs are gathered logit minus logsumexp: no (B, T, V) log_softmax copy is
@@ -107,9 +108,10 @@ def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tens
             x = lean.lean_hidden_shared(model, input_ids, attention_mask, c, first, row_of)  # (B, T-c, d)
         else:
             x = lean.lean_last_layer(model, input_ids, attention_mask)[:, c - 1:T - 1]  # (B, T-c, d)
-        # the head: one fused pass, or row chunks when the (B, T-c, V) logits would be large (real vocabularies)
-        logp, ent = lean.lean_token_logprobs(model, x, input_ids[:, c:], temperature, return_entropy,
-                                             entropy_grad)  # (B, T-c)
+        # the head: one fused pass, or row chunks when the (B, T-c, V) logits would be large (real vocabularies);
+        # only on the scored columns (padding and the longer prompts' columns skipped)
+        logp, ent = _scored_head(model, x, input_ids[:, c:], completion_mask[:, c:], temperature, return_entropy,
+                                 entropy_grad)  # (B, T-c)
         return _place(logp, ent, completion_mask, c)
     kw: dict[str, Any] = {}
     if accepts(model, "position_ids"):
@@ -125,13 +127,16 @@ def sequence_logprobs(model, input_ids: torch.Tensor, attention_mask: torch.Tens
 
 
 def completion_logits(model, input_ids: torch.Tensor, attention_mask: torch.Tensor, completion_mask: torch.Tensor,
-                      *, temperature: float = 1.0) -> tuple[torch.Tensor, int]:
-    """The full next-token distributions where `completion_mask` scores: (logits (B, T-c, V) fp32, c), c the first
-    column the mask selects, so logits[:, j] is the distribution of input_ids[:, c + j] given the tokens before
-    it (the same alignment as `sequence_logprobs`), divided by `temperature`. Differentiable under autograd.
+                      *, temperature: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The full next-token distributions where `completion_mask` scores, and only there: (logits (n, V) fp32,
+    index (n,), c). c is the first column the mask selects; row i of logits is the distribution, divided by
+    `temperature`, of the token at flat position index[i] of the (B, T-c) columns c.. (row index // (T-c), column
+    c + index % (T-c)) given the tokens before it (the same alignment as `sequence_logprobs`), in row-major order
+    of the mask's nonzero entries. Differentiable under autograd. `scatter_scored` puts per-token values back.
 
-    For losses on whole distributions (on-policy distillation's `losses.token_divergence`); memory is B x (T-c)
-    x V floats, so callers bound B x T by a token budget per micro-batch. The lean path when it applies."""
+    For losses on whole distributions (on-policy distillation's `losses.token_divergence`); memory is n x V
+    floats, so callers bound B x T by a token budget per micro-batch. The lean path when it applies: its head then
+    runs on the n scored columns only (padding and unscored columns never reach the vocabulary-wide matmul)."""
     B, T = input_ids.shape
     dev = model_device(model)
     input_ids, attention_mask, completion_mask = input_ids.to(dev), attention_mask.to(dev), completion_mask.to(dev)
@@ -139,17 +144,45 @@ def completion_logits(model, input_ids: torch.Tensor, attention_mask: torch.Tens
     if T < 2 or cols.numel() == 0:
         raise ValueError("completion_logits: completion_mask selects no column after the first")
     c = int(cols[0]) + 1
+    index = completion_mask[:, c:].reshape(-1).nonzero().squeeze(1)  # (n,)
     if lean_support(model, T, mode="train")[0]:
         x = lean.lean_last_layer(model, input_ids, attention_mask)[:, c - 1:T - 1]  # (B, T-c, d)
-        return lean.lean_logits(model, x, temperature).float(), c
+        x = x.reshape(B * (T - c), -1).index_select(0, index)  # (n, d)
+        return lean.lean_logits(model, x, temperature).float(), index, c
     kw: dict[str, Any] = {"position_ids": position_ids_from_mask(attention_mask)} if accepts(model, "position_ids") \
         else {}
     if accepts(model, "logits_to_keep") and c > 1:
         kw["logits_to_keep"] = T - c + 1
     mask = hf_attention_mask(attention_mask, model)  # left padding: 4D, no empty attention row
     logits = model(input_ids=input_ids, attention_mask=mask, **kw).logits  # (B, T or T-c+1, V)
-    logits = logits[:, -(T - c + 1):-1].float()  # (B, T-c, V)
-    return (logits if temperature == 1.0 else logits / temperature), c
+    logits = logits[:, -(T - c + 1):-1]  # (B, T-c, V)
+    logits = logits.reshape(B * (T - c), -1).index_select(0, index).float()  # (n, V)
+    return (logits if temperature == 1.0 else logits / temperature), index, c
+
+
+def scatter_scored(values: torch.Tensor, index: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """Per-token values (n,) of `completion_logits`'s rows -> (B, T-c) `shape`, zeros at the unscored columns;
+    differentiable."""
+    return values.new_zeros(shape[0] * shape[1]).index_copy(0, index, values).view(shape)
+
+
+def _scored_head(model, x: torch.Tensor, targets: torch.Tensor, scored: torch.Tensor, temperature: float,
+                 return_entropy: bool, entropy_grad: bool):
+    """`lean.lean_token_logprobs` of last-layer outputs x (B, S, d) for targets (B, S), run only on the rows where
+    `scored` (B, S) is nonzero: (logp (B, S), entropy (B, S) | None), 0 elsewhere. A real vocabulary's head costs
+    per row about a quarter of the decoder (SmolLM2: 49k x 576 against 30 layers of 576 wide), and a batch's
+    unscored columns (padding after short completions, the prompt tails of rows with longer prompts) are often a
+    third or more of its columns; fewer rows also keep more batches under the chunked head's threshold
+    (no recomputed logits in the backward). The numbers per row are unchanged."""
+    B, S = targets.shape
+    keep = scored.reshape(-1).bool()
+    if bool(keep.all()):
+        return lean.lean_token_logprobs(model, x, targets, temperature, return_entropy, entropy_grad)
+    idx = keep.nonzero().squeeze(1)
+    lp, en = lean.lean_token_logprobs(model, x.reshape(B * S, -1).index_select(0, idx),
+                                      targets.reshape(-1).index_select(0, idx), temperature, return_entropy,
+                                      entropy_grad)
+    return scatter_scored(lp, idx, (B, S)), (scatter_scored(en, idx, (B, S)) if en is not None else None)
 
 
 def _place(logp: torch.Tensor, ent: torch.Tensor | None, completion_mask: torch.Tensor, c: int):

@@ -32,7 +32,8 @@ faster (figures in RESULTS.md):
   through `enable_gqa`. Under bf16 autocast on a CPU with at most EXPLICIT_ATTENTION_MAX_KEYS keys: explicit
   matmuls with an fp32 softmax instead (`_sdpa`), as the CPU kernel is 2-3x slower in bf16 at those lengths.
 - q/k/v and gate/up NOT fused into one matmul (slower on CPU at these sizes; the split's backward is a cat).
-- Logits only for the columns the caller needs (`positions`), and `token_logprobs_fused`: log p(target)
+- Logits only for the columns the caller needs (`positions`; `logprobs.sequence_logprobs` and
+  `logprobs.completion_logits` pass only the scored ones), and `token_logprobs_fused`: log p(target)
   and the entropy from one softmax pass, with a backward that is one multiply plus a scatter; the
   entropy's own gradient (PPO's entropy bonus) is -p * (x - E_p[x]). The temperature is folded into the
   final norm weight, so no (B, T, V) division.

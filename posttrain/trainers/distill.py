@@ -53,8 +53,8 @@ import torch
 from posttrain import loop, sharding
 from posttrain.advantages import group_advantages, zero_variance_groups
 from posttrain.config import ConfigError, Resolved
-from posttrain.logprobs import completion_logits, masked_mean
-from posttrain.losses import logprob_divergence, masked_log_softmax, policy_loss, sampler_mismatch
+from posttrain.logprobs import completion_logits, masked_mean, scatter_scored
+from posttrain.losses import logprob_divergence, policy_loss, sampler_mismatch
 from posttrain.problems import (HeldOut, Problem, Reward, build_env_reward, build_reward, load_env, load_problems,
                                 preflight, sample_and_score, tokenize_problems)
 from posttrain.rollout import SamplingParams
@@ -439,27 +439,30 @@ def distill_loss(cfg: DistillConfig, model, teacher, vocab: int, with_reward: bo
     term (they are not the student's policy)."""
     mb, share, _ = micro_batch
     ids, am = mb["input_ids"], mb["attention_mask"]
-    s_logits, c = completion_logits(model, ids, am, mb["loss_mask"], temperature=cfg.temperature)  # (b, T-c, V)
+    # both models' full distributions on the scored columns only: (n, V) rows, index into the (b, T-c) columns c..
+    s_logits, index, c = completion_logits(model, ids, am, mb["loss_mask"], temperature=cfg.temperature)
     with torch.no_grad(), teacher_autocast():  # the run's mixed precision (the accelerator's autocast)
-        t_logits, _ = completion_logits(teacher, ids, am, mb["loss_mask"], temperature=cfg.temperature)
+        t_logits, _, _ = completion_logits(teacher, ids, am, mb["loss_mask"], temperature=cfg.temperature)
     s_logits, t_logits = s_logits[..., :vocab], t_logits[..., :vocab]
     completion_mask = mb["loss_mask"][:, c:].to(s_logits.device).bool()  # (b, T-c)
-    targets = ids[:, c:].to(s_logits.device)  # (b, T-c)
+    shape = tuple(completion_mask.shape)
+    every = torch.ones_like(index, dtype=torch.bool)  # (n,): each row is scored
+    targets = ids[:, c:].to(s_logits.device).reshape(-1).index_select(0, index)  # (n,)
     # one log_softmax per side over the vocabulary, shared by the loss, the NLL and both KL metrics
-    log_s = masked_log_softmax(s_logits, completion_mask)  # (b, T-c, V) fp32
+    log_s = torch.log_softmax(s_logits, -1)  # (n, V) fp32
     with torch.no_grad():
-        log_p = masked_log_softmax(t_logits, completion_mask)
-    logps = log_s.gather(-1, targets[..., None]).squeeze(-1)  # (b, T-c)
+        log_p = torch.log_softmax(t_logits, -1)
+    logps = scatter_scored(log_s.gather(-1, targets[:, None]).squeeze(-1), index, shape)  # (b, T-c)
     nll = torch.where(completion_mask, -logps, torch.zeros_like(logps))
-    per_token = nll if cfg.loss == "nll" else logprob_divergence(log_s, log_p, completion_mask, kind=cfg.loss,
-                                                                  beta=cfg.jsd_beta)  # (b, T-c)
+    per_token = nll if cfg.loss == "nll" else scatter_scored(
+        logprob_divergence(log_s, log_p, every, kind=cfg.loss, beta=cfg.jsd_beta), index, shape)  # (b, T-c)
     loss = masked_mean(per_token, completion_mask)
     m: dict[str, float] = {}
     with torch.no_grad():
         ls = log_s.detach()
         for kind in ("reverse", "forward"):
             kl = per_token.detach() if cfg.loss == f"{kind}_kl" else \
-                logprob_divergence(ls, log_p, completion_mask, kind=f"{kind}_kl")
+                scatter_scored(logprob_divergence(ls, log_p, every, kind=f"{kind}_kl"), index, shape)
             m[f"kl/{kind}"] = float(masked_mean(kl, completion_mask))
         m["nll"] = float(masked_mean(nll.detach(), completion_mask))
         if "sampler_logps" in mb:  # the weights that sampled: every micro-batch runs before the optimizer step

@@ -647,7 +647,7 @@ def test_token_divergence_hand_computed():
 
 
 def test_logprob_divergence_from_shared_log_softmaxes_equals_token_divergence():
-    """Distillation computes one masked_log_softmax per side and derives its loss and both KL metrics from them:
+    """A caller (distillation) computes one log_softmax per side and derives its loss and both KL metrics from them:
     the same values as token_divergence on the logits, garbage outside the mask kept away."""
     g = torch.Generator().manual_seed(0)
     s, t = torch.randn(2, 3, 7, generator=g), torch.randn(2, 3, 7, generator=g)

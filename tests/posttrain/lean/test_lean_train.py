@@ -187,6 +187,52 @@ def test_sequence_logprobs_switch_on_equals_off(name, temperature, entropy, monk
     torch.testing.assert_close(lp3, lp0, atol=1e-5, rtol=2e-6)
 
 
+def test_the_head_runs_only_on_the_scored_columns(monkeypatch):
+    """Padding and the prompt columns of rows with longer prompts never reach the (vocabulary-wide) head; the
+    numbers are the ones above (switch on equals off)."""
+    model = MODELS["llama-mha-tied"]()
+    ids, am, cm = _batch("both")
+    cm[1, 5:8] = 0  # row 1's prompt is 3 columns longer
+    rows = []
+    real_head = lean_train.lean_token_logprobs
+    monkeypatch.setattr(lean_train, "lean_token_logprobs",
+                        lambda m, x, t, *a, **k: rows.append(t.numel()) or real_head(m, x, t, *a, **k))
+    lp1, _, g1 = _run(model, ids, am, cm, True)
+    assert rows == [int(cm[:, 1:].sum())] and rows[0] < cm[:, 5:].numel()
+    lp0, _, g0 = _run(model, ids, am, cm, False)
+    torch.testing.assert_close(lp1, lp0, atol=1e-5, rtol=2e-6)
+    assert bool((lp1[cm == 0] == 0).all())
+    for n in g0:
+        torch.testing.assert_close(g1[n], g0[n], rtol=1e-4, atol=1e-5 * float(g0[n].abs().max()), msg=n)
+
+
+def test_completion_logits_are_the_scored_columns_distributions_on_both_paths():
+    """completion_logits: one row per scored column (row-major), the full logits of the model at that column's
+    prediction, lean and HF paths equal; scatter_scored puts per-token values back with zeros elsewhere."""
+    from posttrain.logprobs import completion_logits, scatter_scored
+
+    model = MODELS["qwen2-gqa-bias"]()
+    ids, am, cm = _batch("both")
+    cm[1, 5:8] = 0
+    outs = {}
+    for enabled in (True, False):
+        before = support.ENABLED
+        support.ENABLED = enabled
+        try:
+            outs[enabled] = completion_logits(model, ids, am, cm, temperature=0.7)
+        finally:
+            support.ENABLED = before
+    (lg, index, c), (lg0, index0, c0) = outs[True], outs[False]
+    assert c == c0 == 5 and torch.equal(index, index0) and lg.shape == (int(cm.sum()), V)
+    torch.testing.assert_close(lg, lg0, atol=1e-5, rtol=0)
+    full = model(input_ids=ids, attention_mask=am, position_ids=position_ids_from_mask(am)).logits / 0.7
+    rows, cols = index // (ids.shape[1] - c), c + index % (ids.shape[1] - c)
+    assert bool(cm[rows, cols].all())
+    torch.testing.assert_close(lg, full[rows, cols - 1], atol=1e-5, rtol=0)
+    back = scatter_scored(torch.arange(1.0, len(index) + 1), index, (ids.shape[0], ids.shape[1] - c))
+    assert bool((back[cm[:, c:] == 0] == 0).all()) and back[cm[:, c:].bool()].tolist() == list(range(1, len(index) + 1))
+
+
 def test_unsupported_models_fall_back():
     model = _llama()
     assert lean_support(model, 13, mode="train")[0]
