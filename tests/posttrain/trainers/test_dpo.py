@@ -309,8 +309,10 @@ def test_the_recipe_chain_from_nothing(tmp_path, capsys, learning):
     assert "gold win-rate of the DPO model against the SFT model" in text
     ev = json.loads((out / "chain" / "dpo" / "eval.json").read_text())
     assert "proxy_reward" in ev["dpo"]
-    # the SFT model of this small run rambles; DPO's pairs first of all teach the length band
-    learning.above("words out of band, sft - dpo", ev["sft"]["mean_distance"] - ev["dpo"]["mean_distance"], 0, ev)
+    # DPO beats its SFT start on the task's gold metric (ties count half), the quantity E6 measures; over seeds
+    # 0-3 and 1-2 threads this small run's win-rate is 0.533-0.567, while the length-band metrics it also moves
+    # swing around zero (RESULTS.md, "Test margins")
+    learning.above("gold win-rate against sft", ev["dpo"]["win_rate"], 0.5, ev)
 
 
 @pytest.mark.learning
