@@ -155,8 +155,8 @@ def completion_logits(model, input_ids: torch.Tensor, attention_mask: torch.Tens
         kw["logits_to_keep"] = T - c + 1
     mask = hf_attention_mask(attention_mask, model)  # left padding: 4D, no empty attention row
     logits = model(input_ids=input_ids, attention_mask=mask, **kw).logits  # (B, T or T-c+1, V)
-    logits = logits[:, -(T - c + 1):-1]  # (B, T-c, V)
-    logits = logits.reshape(B * (T - c), -1).index_select(0, index).float()  # (n, V)
+    logits = logits[:, -(T - c + 1):-1]  # (B, T-c, V), a strided view
+    logits = logits[index // (T - c), index % (T - c)].float()  # (n, V): gathers the rows, no (B, T-c, V) copy
     return (logits if temperature == 1.0 else logits / temperature), index, c
 
 
