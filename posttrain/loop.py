@@ -15,8 +15,9 @@ process and under `accelerate launch` (DDP/FSDP/DeepSpeed): the Accelerator deci
 - `build_optimizer` / `build_scheduler`: AdamW (no weight decay on norms, biases and
   embeddings), linear warmup then cosine / linear / constant.
 - `optimizer_step`: gradient accumulation over micro-batches (no gradient sync on all but
-  the last under DDP), clipping, a non-finite-loss guard, optimizer + scheduler step; metrics
-  averaged over micro-batches and processes, or weighted by each micro-batch's share (`weights`).
+  the last under DDP), clipping (inside the fused AdamW step where it can: `clip_divisor`), a
+  non-finite-loss guard, optimizer + scheduler step; metrics averaged over micro-batches and
+  processes, or weighted by each micro-batch's share (`weights`).
 - `batch_indices`: the data order as a pure function of (seed, step), so resuming at a
   step reproduces the exact batches without saving a sampler.
 - `stream_seed(seed, purpose, *indices)`: the seed of one named stream of randomness (a step's samples, a
@@ -233,6 +234,39 @@ def nonfinite_grads(model, show: int = 3) -> str:
         f"{len(named)} parameters)"
 
 
+def total_norm(grads: list[torch.Tensor]) -> torch.Tensor:
+    """The 2-norm of all `grads` as one vector (0-dim fp32; 0 for none), as `clip_grad_norm_` computes it."""
+    if not grads:
+        return torch.zeros(())
+    if hasattr(torch.nn.utils, "get_total_norm"):  # torch >= 2.6: foreach norms where the device has them
+        return torch.nn.utils.get_total_norm(grads).float()
+    return torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g, dtype=torch.float32) for g in grads]))
+
+
+def clip_divisor(norm: torch.Tensor, max_norm: float) -> torch.Tensor:
+    """What clipping to `max_norm` divides every gradient by: 1 / min(1, max_norm / (norm + 1e-6)), the
+    coefficient `torch.nn.utils.clip_grad_norm_` multiplies them by (0-dim fp32, on norm's device)."""
+    coef = torch.clamp(max_norm / (norm.float() + 1e-6), max=1.0)
+    return 1.0 / coef
+
+
+def _fused_clip_target(accelerator, optimizer) -> torch.optim.Optimizer | None:
+    """The fused AdamW under `optimizer` when gradient clipping can ride in its step instead of a pass of its own
+    (it divides each gradient by its `grad_scale` attribute as it reads it, the hook torch's GradScaler uses):
+    one process or DDP (whole, identical gradients on every process), no fp16 loss scaler, and every parameter
+    in the fused kernel. Else None: accelerate's clip_grad_norm_ (FSDP and DeepSpeed shard the gradients)."""
+    from accelerate.utils import DistributedType
+
+    inner = getattr(optimizer, "optimizer", optimizer)  # accelerate's AcceleratedOptimizer wraps the torch one
+    if (getattr(accelerator, "distributed_type", None) not in (DistributedType.NO, DistributedType.MULTI_CPU,
+                                             DistributedType.MULTI_GPU)
+            or getattr(accelerator, "scaler", None) is not None
+            or not isinstance(inner, torch.optim.AdamW) or not inner.defaults.get("fused")
+            or getattr(inner, "grad_scale", None) is not None):
+        return None
+    return inner
+
+
 def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list[Any],
                    loss_fn: Callable[[Any], tuple[torch.Tensor, dict[str, float]]],
                    max_grad_norm: float, step: int, weights: list[float] | None = None) -> dict[str, float]:
@@ -294,14 +328,28 @@ def optimizer_step(accelerator, model, optimizer, scheduler, micro_batches: list
             else:
                 totals[k] = totals.get(k, 0.0) + (float(v) * w if w != 0.0 else 0.0)
     grad_norm = float("nan")
+    fused = None
     if max_grad_norm > 0:
-        grad_norm = float(accelerator.clip_grad_norm_(model.parameters(), max_grad_norm))
+        fused = _fused_clip_target(accelerator, optimizer)
+        if fused is not None:  # the clip as the fused AdamW's gradient divisor: no pass of its own over the grads
+            grads = [p.grad for p in model.parameters() if p.grad is not None]
+            norm = total_norm(grads)
+            grad_norm = float(norm)
+            if math.isfinite(grad_norm):
+                scale = clip_divisor(norm, max_grad_norm)
+                fused.grad_scale = scale if float(scale) > 1.0 else None
+        else:
+            grad_norm = float(accelerator.clip_grad_norm_(model.parameters(), max_grad_norm))
         if not math.isfinite(grad_norm):
             where = nonfinite_grads(model)
             optimizer.zero_grad(set_to_none=True)
             raise TrainingError(f"non-finite gradient norm at step {step}{where}; stopping. The last good checkpoint "
                                 "is intact.")
-    optimizer.step()
+    try:
+        optimizer.step()
+    finally:
+        if fused is not None:
+            fused.grad_scale = None
     scheduler.step()
     optimizer.zero_grad(set_to_none=True)
     n = real if weights is None else 1  # weighted: the sums are already the means

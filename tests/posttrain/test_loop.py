@@ -500,3 +500,44 @@ def test_tune_malloc_keeps_large_blocks_in_the_heap_once_per_process(monkeypatch
     monkeypatch.setattr(runtime, "_malloc_tuned", False)
     monkeypatch.setenv("POSTTRAIN_NO_MALLOPT", "1")
     assert runtime.tune_malloc() is False and len(calls) == 2
+
+
+@pytest.mark.parametrize("max_norm", [0.05, 100.0])  # clipping, and a norm under the bound (nothing to clip)
+def test_clipping_inside_the_fused_adamw_step_equals_clip_grad_norm_then_step(max_norm):
+    """One process, fused AdamW: the clip rides in the optimizer step as its gradient divisor (`clip_divisor`)
+    instead of a pass of its own over the gradients. The weights after the step and the logged norm are those of
+    `torch.nn.utils.clip_grad_norm_` followed by the step, and the divisor does not outlive the step."""
+    accelerator = loop.setup(0)
+    x, y = torch.randn(16, 6), torch.randn(16, 2)
+
+    def build():
+        torch.manual_seed(1)
+        model = torch.nn.Sequential(torch.nn.Linear(6, 8), torch.nn.LayerNorm(8), torch.nn.Linear(8, 2))
+        opt = loop.build_optimizer(model, lr=0.1, weight_decay=0.1)
+        return model, opt, loop.build_scheduler(opt, 0, 10, "constant")
+
+    model, opt, sch = build()
+    model, opt = accelerator.prepare(model, opt)
+    assert loop._fused_clip_target(accelerator, opt) is opt.optimizer  # the path under test
+    ref, ref_opt, ref_sch = build()
+    for step in (1, 2, 3):
+        out = loop.optimizer_step(accelerator, model, opt, sch, [0], lambda mb: (((model(x) - y) ** 2).mean(), {}),
+                                  max_norm, step)
+        ((ref(x) - y) ** 2).mean().backward()
+        norm = torch.nn.utils.clip_grad_norm_(ref.parameters(), max_norm)
+        ref_opt.step()
+        ref_sch.step()
+        ref_opt.zero_grad(set_to_none=True)
+        assert out["grad_norm"] == pytest.approx(float(norm), rel=1e-6)
+        assert (float(norm) > max_norm) == (max_norm == 0.05)  # both regimes really happen
+        assert getattr(opt.optimizer, "grad_scale", None) is None
+        for a, b in zip(model.parameters(), ref.parameters()):
+            torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+
+
+def test_clip_divisor_is_the_reciprocal_of_clip_grad_norms_coefficient():
+    assert float(loop.clip_divisor(torch.tensor(4.0), 1.0)) == pytest.approx((4.0 + 1e-6) / 1.0)
+    assert float(loop.clip_divisor(torch.tensor(0.5), 1.0)) == 1.0  # under the bound: unchanged
+    g = [torch.tensor([3.0, 4.0]), torch.tensor([12.0])]
+    assert float(loop.total_norm(g)) == pytest.approx(13.0)
+    assert float(loop.total_norm([])) == 0.0
