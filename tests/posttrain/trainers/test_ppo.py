@@ -464,7 +464,7 @@ def test_lora_ppo_learns_with_no_reference_copy_and_saves_a_merged_model(world, 
     out = tmp_path / "lora"
     assert main(_args(world, out, f"task.train_file={world['short']}", "reward=rm", f"reward_model={world['rm']}",
                       "max_steps=12", "rollout_batch_size=32", "minibatch_size=16", "ppo_epochs=4",
-                      "max_new_tokens=24", "lr=1e-2", "kl_coef=0.01", "eval_every=4", "final_eval_rows=8",
+                      "max_new_tokens=24", "lr=5e-3", "kl_coef=0.01", "eval_every=4", "final_eval_rows=8",
                       "lora.enabled=true", *learning.overrides)) == 0
     text = capsys.readouterr().out
     assert "LoRA r=16" in text and "(policy)" in text and "(value model)" in text
@@ -473,8 +473,11 @@ def test_lora_ppo_learns_with_no_reference_copy_and_saves_a_merged_model(world, 
     # The shaped score PPO maximises: vowel fraction - 1 for each completion that never ends (detail 3).
     first, last = m[0]["rollout/score"], sum(r["rollout/score"] for r in m[-2:]) / 2
     learning.above("shaped score, last - first", last - first, 0.5, [r["rollout/score"] for r in m])
-    # The median of the last 4 iterations: at lr 1e-2 one late iteration can spike back (Zen 3, seed 0: no_eos
+    # The median of the last 4 iterations: one late iteration can spike back (at lr 1e-2, Zen 3, seed 0: no_eos
     # 0.0, 0.0, 0.0 then 0.84 at the last of 12) while the run as a whole has learned to end its completions.
+    # lr 5e-3, not 1e-2: at 1e-2 some seeds stay stuck at no_eos ~1 for 8+ iterations (seed 2: score -0.78 until
+    # iteration 8, last - first 0.08); at 5e-3 every seed 0-3 x threads 1, 2 learns (worst last - first 0.88,
+    # worst no_eos 0.016: RESULTS.md, "Test margins").
     late = sorted(r["rollout/no_eos"] for r in m[-4:])
     learning.below("completions without EOS (median of the last 4 iterations)", (late[1] + late[2]) / 2, 0.3,
                    [r["rollout/no_eos"] for r in m])
