@@ -872,3 +872,24 @@ def test_lora_under_bf16_autocast_casts_the_frozen_base_once(monkeypatch):
     assert 0 < err_lean < 0.5 and err_lean <= 4 * err_hf + 0.02, (err_lean, err_hf)
     for n in g32:
         assert _cosine(g_lean[n], g32[n]) > 0.98, n
+
+
+@pytest.mark.parametrize("with_weight", [True, False])
+def test_the_rms_norms_written_out_backward_is_the_derivative(with_weight):
+    """`_RMSNorm`'s hand-written backward against numerical derivatives (float64 gradcheck), and its forward equal
+    to HF's LlamaRMSNorm formula; under bf16 autocast its output is bf16 (the projections' input, cast once) and
+    its gradients stay in the input's dtype."""
+    torch.manual_seed(0)
+    x = torch.randn(5, 8, dtype=torch.float64, requires_grad=True)
+    g = (torch.rand(8, dtype=torch.float64) + 0.5).requires_grad_() if with_weight else None
+    fn = lambda x, g: lean_train._RMSNorm.apply(x, g, 1e-6, None)
+    assert torch.autograd.gradcheck(fn, (x, g))
+    hf = x * torch.rsqrt(x.pow(2).mean(-1, keepdim=True) + 1e-6) * (g if with_weight else 1.0)
+    torch.testing.assert_close(fn(x, g), hf, rtol=0, atol=1e-15)
+    x32 = x.detach().float().requires_grad_()
+    g32 = g.detach().float().requires_grad_() if with_weight else None
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = lean_train._RMSNorm.apply(x32, g32, 1e-6, lean_train._autocast_dtype(x32.device))
+    assert y.dtype == torch.bfloat16
+    (y.float() * torch.arange(8.0)).sum().backward()
+    assert x32.grad.dtype == torch.float32 and (not with_weight or g32.grad.dtype == torch.float32)
