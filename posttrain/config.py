@@ -111,7 +111,8 @@ class RunConfig:
     mixed_precision: Literal["no", "bf16", "auto"] = "no"
     """bf16 autocast over fp32 weights in every stage's training forward and backward (the weights, optimizer state,
     losses and advantages stay fp32; log-probs are taken in fp32 from the bf16 forward's logits, so PPO / GRPO
-    ratios to the fp32 sampler are no longer exactly 1; generation is not autocast: `rollout.dtype` sets it): no (what `accelerate launch`
+    ratios to the fp32 sampler are no longer exactly 1; the frozen reference's and teacher's log-probs are taken
+    under the same autocast; generation is not autocast: `rollout.dtype` sets it): no (what `accelerate launch`
     says, else none), bf16, or auto (bf16 where the hardware has native bf16: a GPU, or a CPU with AVX512-BF16
     or AMX; on other CPUs bf16 is emulated and slower)."""
     report_to: str | list[str] = "none"

@@ -15,6 +15,7 @@ so DDP's gradient average is the one-process gradient (`micro_batches` for GRPO'
 """
 from __future__ import annotations
 
+from contextlib import nullcontext
 from typing import Any
 
 import torch
@@ -52,7 +53,21 @@ def sharded_logprobs(accelerator, model, batch: Any, micro_batch_size: int, temp
     """No-grad log-probs (B, T) of every row of `batch` (input_ids / attention_mask / completion_mask) under
     `model`: each process computes its rows r, r + W, ... (micro-batches of at most `micro_batch_size` rows and
     `max_tokens` padded tokens), then they are gathered, so every process holds all rows (shares padded to
-    the largest one for the gather)."""
+    the largest one for the gather). In the run's precision (`run_precision`): a frozen reference that accelerate
+    never prepared runs under the same bf16 autocast as the policy, as TRL's does."""
+    with run_precision(accelerator):
+        return _sharded_logprobs(accelerator, model, batch, micro_batch_size, temperature, max_tokens)
+
+
+def run_precision(accelerator):
+    """The run's mixed-precision context (accelerate's autocast: bf16 under run.mixed_precision=bf16, else off) for
+    forwards of models accelerate never prepared (frozen references, teachers); a no-op without an accelerator."""
+    autocast = getattr(accelerator, "autocast", None)
+    return autocast() if autocast is not None else nullcontext()
+
+
+def _sharded_logprobs(accelerator, model, batch: Any, micro_batch_size: int, temperature: float,
+                      max_tokens: int) -> torch.Tensor:
     if accelerator is None or accelerator.num_processes == 1:
         return batched_logprobs(model, batch, micro_batch_size, temperature=temperature, max_tokens=max_tokens)[0]
     rank, world = accelerator.process_index, accelerator.num_processes

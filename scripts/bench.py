@@ -811,7 +811,8 @@ def _dpo_setup(args, real: bool = False, bf16: bool = False) -> SimpleNamespace:
         model = copy.deepcopy(base)
         accelerator = loop.setup(0, mixed_precision="bf16" if bf16 else None)
         t0 = time.perf_counter()
-        ref = reference_logps(model, pairs, pad, B)  # fp32, once, as the trainer does (before its autocast)
+        with accelerator.autocast():  # once, in the run's precision, as the trainer does
+            ref = reference_logps(model, pairs, pad, B)
         optimizer = loop.build_optimizer(model, lr)
         model, optimizer = accelerator.prepare(model, optimizer)  # as the trainer does (its autocast under bf16)
         scheduler = loop.build_scheduler(optimizer, 0, S, "constant")

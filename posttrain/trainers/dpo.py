@@ -18,6 +18,8 @@ Implementation details it follows, each with its source and flag (tested in test
     rejected rows, in one forward (TRL's concatenated_forward). The log-probs are the same either way.
  7. Precomputed vs live reference (`reference`): "precomputed" (TRL's precompute_ref_log_probs) keeps only the
     SFT model's log-prob sums of the pairs, taken before the first update; "live" a frozen copy (same numbers).
+    Either is taken in the run's precision (under run.mixed_precision=bf16 the same bf16 autocast as the policy's
+    log-probs, as TRL's reference: the implicit rewards start at 0 up to batching, not at the bf16 - fp32 gap).
  8. Online / iterative DPO (Guo et al. 2024, online AI feedback; `online`, `online_every`, `online_*`): every
     online_every steps, pairs sampled from the policy, labelled as the prefs stage does (`online_labeler`: gold
     or reward model), replace the training pairs; `save_rollouts_every` saves them (`posttrain rollouts`).
@@ -49,11 +51,12 @@ Deviations and limits:
 """
 from __future__ import annotations
 
+import contextlib
 import random
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Callable, Literal
 
 import torch
 
@@ -194,7 +197,8 @@ def train(res: Resolved, ensure) -> Path:
             m = loop.optimizer_step(run.accelerator, run.model, run.optimizer, run.scheduler,
                                     micro_groups(cfg, pool, idx, run.budget),
                                     lambda mi: micro_batch_loss(cfg, run.model, run.ref.live, pool, mi,
-                                                                run.tokenizer.pad_token_id, len(idx)),
+                                                                run.tokenizer.pad_token_id, len(idx),
+                                                                run.ref.precision),
                                     cfg.max_grad_norm, done)
             if saving or (cfg.eval_every and done % cfg.eval_every == 0):
                 loop.check_weights(done, run.model)
@@ -254,11 +258,11 @@ def setup(res: Resolved, cfg: DPOConfig, ensure) -> DPORun:
     # The SFT model: the reference (and the baseline completions), then, unchanged, the policy.
     model = models.maybe_lora(res, models.load_model(sft_dir, res.model.dtype, device=dev), say)  # LoRA: adapters 0
     budget = models.token_budget(res.run.micro_batch_tokens, model)  # padded tokens per micro-batch (memory)
-    ref = Reference(res, sft_dir, dev)
+    ref = Reference(res, sft_dir, dev, precision=accelerator.autocast)  # the run's precision, as the policy's
     if cfg.loss_type in REFERENCE_FREE:  # SimPO, ORPO: no reference log-probs at all (the KL eval loads the SFT model)
         ref_train = None
     elif cfg.reference == "precomputed":
-        ref_train, ref.heldout = precompute_reference(cfg, model, data, pad_id, budget, say)
+        ref_train, ref.heldout = precompute_reference(cfg, model, data, pad_id, budget, say, ref.precision)
     else:
         ref_train, ref.live = None, models.load_reference(res, model, sft_dir, dev)
     baseline = evaluation.complete(model, tokenizer, [r["prompt"] for r in data.gold_rows],
@@ -382,11 +386,13 @@ class Pool:
 
 
 def micro_batch_loss(cfg: DPOConfig, model, ref_model, pool: Pool, idx: list[int], pad_id: int,
-                     batch_pairs: int) -> tuple[torch.Tensor, dict[str, float]]:
-    """`pair_loss` of pool.pairs[idx] (reference: the pool's log-probs or `ref_model`), times len(idx) / batch_pairs."""
+                     batch_pairs: int, ref_precision: Callable[[], Any] = contextlib.nullcontext
+                     ) -> tuple[torch.Tensor, dict[str, float]]:
+    """`pair_loss` of pool.pairs[idx] (reference: the pool's log-probs or `ref_model`, the latter's forward under
+    `ref_precision`, the run's autocast), times len(idx) / batch_pairs."""
     batch = collate_pairs([pool.pairs[i] for i in idx], pad_id, cfg.share_prompt)
     s, n = pair_logps(model, batch)
-    with torch.no_grad():  # the reference: precomputed in the pool, the live model's, or none (SimPO, ORPO)
+    with torch.no_grad(), ref_precision():  # the reference: precomputed in the pool, the live model's, or none
         ref = None if cfg.loss_type in REFERENCE_FREE else \
             {k: v[torch.as_tensor(idx, dtype=torch.long)] for k, v in pool.ref.items()} if pool.ref is not None \
             else by_side(*pair_logps(ref_model, batch), len(idx))
@@ -464,6 +470,7 @@ class Reference:
     device: Any
     live: Any = None  # reference=live: the frozen copy (LoRA: the policy with its adapters off)
     heldout: dict[str, torch.Tensor] | None = None  # reference=precomputed: (N,) log-probs of the held-out pairs
+    precision: Callable[[], Any] = contextlib.nullcontext  # the run's autocast, every reference log-prob under it
 
     def model_for(self, policy):
         """For NEW sequences (KL, online pairs): the live copy, the policy with LoRA off, or the SFT model for now."""
@@ -472,16 +479,19 @@ class Reference:
         return models.load_reference(self.res, policy, self.sft_dir, self.device)
 
 
-def precompute_reference(cfg: DPOConfig, model, data: PairData, pad_id: int, budget: int, say) -> tuple[dict, dict]:
-    """Reference log-probs of the held-out pairs and of the training pairs the run draws (the others NaN, unused)."""
+def precompute_reference(cfg: DPOConfig, model, data: PairData, pad_id: int, budget: int, say,
+                         precision: Callable[[], Any] = contextlib.nullcontext) -> tuple[dict, dict]:
+    """Reference log-probs of the held-out pairs and of the training pairs the run draws (the others NaN, unused),
+    under `precision` (the run's autocast: the policy's log-probs are taken in the same precision)."""
     t0, micro = time.time(), cfg.micro_batch_size or cfg.batch_size
     offline_steps = min(cfg.max_steps, cfg.online_every) if cfg.online else cfg.max_steps  # online: then new pairs
     used = sorted({i for s in range(offline_steps)
                    for i in loop.batch_indices(len(data.train), cfg.batch_size, cfg.seed, s)})
-    ref_used = reference_logps(model, [data.train[i] for i in used], pad_id, micro, cfg.share_prompt, budget)
+    with precision():
+        ref_used = reference_logps(model, [data.train[i] for i in used], pad_id, micro, cfg.share_prompt, budget)
+        ref_heldout = reference_logps(model, data.heldout, pad_id, micro, cfg.share_prompt, budget)
     ref_train = {k: torch.full((len(data.train),), float("nan")).index_copy(0, torch.tensor(used), v)
                  for k, v in ref_used.items()}
-    ref_heldout = reference_logps(model, data.heldout, pad_id, micro, cfg.share_prompt, budget)
     say(f"[dpo] reference log-probs of {len(used)} training and {len(data.heldout)} held-out pairs "
         f"precomputed in {time.time() - t0:.1f}s; no reference model is kept in memory")
     return ref_train, ref_heldout
@@ -507,9 +517,11 @@ def refresh_pool(step: int, cfg: DPOConfig, policy, tokenizer, max_length: int, 
         metrics.log_table("rollouts", save_step_rollouts(samples, save_to, step), step)
     _, pairs, _ = preferences.check_pairs([{**r, "_row": i + 1} for i, r in enumerate(new_rows)],
                                           f"online pairs (step {step})", "skip", tokenizer, max_length)
-    pair_ref = reference_logps(ref.model_for(policy), pairs, tokenizer.pad_token_id, cfg.micro_batch_size or
-                               cfg.batch_size, cfg.share_prompt, budget) \
-        if cfg.reference == "precomputed" and cfg.loss_type not in REFERENCE_FREE else None
+    pair_ref = None
+    if cfg.reference == "precomputed" and cfg.loss_type not in REFERENCE_FREE:
+        with ref.precision():
+            pair_ref = reference_logps(ref.model_for(policy), pairs, tokenizer.pad_token_id, cfg.micro_batch_size or
+                                       cfg.batch_size, cfg.share_prompt, budget)
     metrics.log(step, {"online/pairs": len(pairs), "online/prompts_all_tied": st["prompts_all_tied"]}, console=False)
     say(f"[dpo] step {step}: online pairs regenerated from the policy: {len(pairs)} pairs "
         f"({st['prompts_all_tied']} of {len(idx)} prompts tied), labelled by {cfg.online_labeler}")
@@ -533,7 +545,8 @@ def evaluate(step: int, run: DPORun) -> None:
         model.eval()
     with torch.no_grad():
         for idx in micro_groups(cfg, heldout, list(range(len(heldout.pairs))), run.budget):
-            loss, m = micro_batch_loss(cfg, model, ref.live, heldout, idx, run.tokenizer.pad_token_id, len(idx))
+            loss, m = micro_batch_loss(cfg, model, ref.live, heldout, idx, run.tokenizer.pad_token_id, len(idx),
+                                       ref.precision)
             for k, v in {**m, "loss": float(loss)}.items():
                 sums[k] = sums.get(k, 0.0) + v * len(idx)
     m = {f"eval/{k}": v / len(heldout.pairs) for k, v in sums.items()}
