@@ -258,8 +258,8 @@ def _fused_clip_target(accelerator, optimizer) -> torch.optim.Optimizer | None:
     from accelerate.utils import DistributedType
 
     inner = getattr(optimizer, "optimizer", optimizer)  # accelerate's AcceleratedOptimizer wraps the torch one
-    if (getattr(accelerator, "distributed_type", None) not in (DistributedType.NO, DistributedType.MULTI_CPU,
-                                             DistributedType.MULTI_GPU)
+    whole = (DistributedType.NO, DistributedType.MULTI_CPU, DistributedType.MULTI_GPU)
+    if (getattr(accelerator, "distributed_type", None) not in whole
             or getattr(accelerator, "scaler", None) is not None
             or not isinstance(inner, torch.optim.AdamW) or not inner.defaults.get("fused")
             or getattr(inner, "grad_scale", None) is not None):

@@ -48,9 +48,10 @@ faster (figures in RESULTS.md):
   prepared model would enter in its patched `forward` (entered here, since that forward is never called:
   `support.train_autocast`), every projection and the attention run in bf16 as the HF forward's would; the
   residual stream, the norms (their outputs cast to bf16) and RoPE stay fp32, the head's matmul is bf16 with
-  its softmax, log-probs and gradients fp32 (the chunked head casts explicitly, forward and backward). fp16 autocast falls back. On
-  SmolLM2 with native bf16 a GRPO-like forward + backward is faster than lean fp32 and than the HF forward
-  under the same autocast (measured: RESULTS.md, "Lean forwards" and "Figures once kept in code comments").
+  its softmax, log-probs and gradients fp32 (the chunked head casts explicitly, forward and backward). fp16
+  autocast falls back. On SmolLM2 with native bf16 a GRPO-like forward + backward is faster than lean fp32 and
+  than the HF forward under the same autocast (measured: RESULTS.md, "Lean forwards" and "Figures once kept in
+  code comments").
 - Not kept: a vector_norm/hypot RMSNorm (as `LeanLlama`; barely faster, more rounding), explicit-matmul
   attention in fp32 (no faster than the kernel; its backward keeps the (B, H, T, T) probabilities), a flip-based
   rotate_half.
