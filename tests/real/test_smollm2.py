@@ -261,9 +261,11 @@ def test_eval_and_lora_on_the_real_model(chain, capsys):
     assert main(["sft", "--recipe", "tiny-summarize", *chain["common"], f"run.output_dir={out}", "max_steps=3",
                  "batch_size=4", "lr=1e-3", "warmup_steps=0", "log_every=1", "eval_every=0", "final_eval_rows=0",
                  "save_every=0", "lora.enabled=true", "lora.r=8"]) == 0
+    _drop_checkpoints(out)
     final = out / "tiny-summarize" / "sft" / "final"
     assert not (final / "adapter_config.json").exists()  # merged: a plain model
     assert AutoModelForCausalLM.from_pretrained(final).config.num_hidden_layers == 30
+    shutil.rmtree(out)
 
 
 # ----------------------------------------------------------------------------- tools: multi-turn episodes (issue 35)
