@@ -26,10 +26,13 @@ process and under `accelerate launch` (DDP/FSDP/DeepSpeed): the Accelerator deci
 - `MetricsLog`: one JSON line per logged step in metrics.jsonl plus a console line.
 - `Checkpointer`: `checkpoints/step-NNNNNN/` written to a temp dir then renamed (atomic);
   it holds model, optimizer, scheduler, RNG states and the data position; `resume_run` loads
-  the newest complete one.
+  the newest complete one. A checkpoint the disk has no room for first drops the old ones this save would
+  drop anyway (never the newest), then stops the run with a TrainingError naming the sizes; a disk that fills
+  during the write does the same, its temp dir removed, the earlier checkpoints intact.
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import math
@@ -579,6 +582,21 @@ def full_state_dict(accelerator, model) -> dict | None:
     return accelerator.get_state_dict(model)
 
 
+def _tensor_bytes(obj: Any) -> int:
+    """Bytes of the tensors in a nested dict / list / tuple (what `torch.save` writes, less pickle's overhead)."""
+    if isinstance(obj, torch.Tensor):
+        return obj.numel() * obj.element_size()
+    if isinstance(obj, dict):
+        return sum(_tensor_bytes(v) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(_tensor_bytes(v) for v in obj)
+    return 0
+
+
+def _newest(ckpts: list[Path]) -> str:
+    return f"the newest checkpoint, {ckpts[-1].name}, is intact" if ckpts else "no earlier checkpoint"
+
+
 class Checkpointer:
     """Atomic checkpoints under `<run_dir>/checkpoints/step-NNNNNN/` (temp dir + rename)."""
 
@@ -609,12 +627,20 @@ class Checkpointer:
                 "extra": extra or {},
             }
             self.dir.mkdir(parents=True, exist_ok=True)
+            self._make_room(step, _tensor_bytes(state))
             tmp = self.dir / f".tmp-step-{step:06d}-{os.getpid()}"
             if tmp.exists():
                 shutil.rmtree(tmp)
             tmp.mkdir()
-            torch.save(state, tmp / "state.pt")
-            (tmp / "meta.json").write_text(json.dumps({"step": step, "data": data_state or {}}))
+            try:
+                torch.save(state, tmp / "state.pt")
+                (tmp / "meta.json").write_text(json.dumps({"step": step, "data": data_state or {}}))
+            except OSError as e:
+                shutil.rmtree(tmp, ignore_errors=True)
+                if e.errno != errno.ENOSPC:
+                    raise
+                raise TrainingError(f"the disk filled while writing the checkpoint of step {step} in {self.dir} "
+                                    f"({_newest(self.all())}; its temp dir removed)") from e
             if final.exists():
                 shutil.rmtree(final)
             os.replace(tmp, final)  # atomic: a checkpoint dir either exists whole or not at all
@@ -623,6 +649,23 @@ class Checkpointer:
         if self.accelerator is not None:
             self.accelerator.wait_for_everyone()
         return final
+
+    def _make_room(self, step: int, nbytes: int) -> None:
+        """Room on disk for a checkpoint of `nbytes` (plus 1%): when short, first drop the checkpoints this save
+        would drop once written (the oldest beyond keep - 1; never the newest, so a failed write still leaves
+        one), then, still short, a TrainingError naming what it takes and what is free."""
+        need = int(nbytes * 1.01) + 2**20
+        if shutil.disk_usage(self.dir).free >= need:
+            return
+        ckpts = self.all()
+        stale = ckpts[:-1][:max(0, len(ckpts) - (self.keep - 1))] if self.keep > 0 else []
+        for old in stale:
+            shutil.rmtree(old, ignore_errors=True)
+        free = shutil.disk_usage(self.dir).free
+        if free < need:
+            raise TrainingError(f"not enough disk for the checkpoint of step {step}: it takes {need / 2**20:,.0f} "
+                                f"MiB and {self.dir} has {free / 2**20:,.0f} MiB free ({_newest(self.all())}); "
+                                f"free some space, or lower keep_checkpoints, then resume=true")
 
     def all(self) -> list[Path]:
         if not self.dir.is_dir():

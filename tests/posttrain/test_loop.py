@@ -169,6 +169,76 @@ def test_checkpoint_roundtrip_atomic_and_pruned(tmp_path):
     assert torch.rand(1).equal(expected_next)  # RNG restored to the saved state
 
 
+class _Disk:
+    """`shutil.disk_usage` of a disk of `capacity` bytes that holds only the checkpoint files under `root`."""
+
+    def __init__(self, root, capacity):
+        self.root, self.capacity = root, capacity
+
+    def __call__(self, path):
+        import collections
+
+        used = sum(f.stat().st_size for f in self.root.rglob("*") if f.is_file())
+        return collections.namedtuple("usage", "total used free")(self.capacity, used, self.capacity - used)
+
+
+def _big():  # a model whose checkpoint (~400 kB with AdamW's two moments) dwarfs pickle's overhead
+    torch.manual_seed(0)
+    model = torch.nn.Linear(100, 300)
+    opt = loop.build_optimizer(model, lr=0.1)
+    return model, opt, loop.build_scheduler(opt, 0, 10, "constant")
+
+
+def _two_checkpoints(tmp_path, keep):
+    model, opt, sch = _big()
+    ck = loop.Checkpointer(tmp_path, keep=keep, accelerator=_Acc())
+    for step in (1, 2):
+        loop.optimizer_step(_Acc(), model, opt, sch, [0], lambda mb: (model(torch.randn(2, 100)).pow(2).mean(), {}), 1.0,
+                           step)
+        ck.save(step, model, opt, sch, {"step": step})
+    size = (ck.dir / "step-000002" / "state.pt").stat().st_size
+    return ck, model, opt, sch, size
+
+
+def test_a_checkpoint_short_of_disk_first_drops_the_old_ones_its_save_would_drop(tmp_path, monkeypatch):
+    ck, model, opt, sch, size = _two_checkpoints(tmp_path, keep=2)
+    # room for the two on disk plus half of a third: dropping step 1 (which this save drops anyway) makes room
+    monkeypatch.setattr(loop.shutil, "disk_usage", _Disk(ck.dir, int(2.5 * size) + 2**20))
+    ck.save(3, model, opt, sch, {"step": 3})
+    assert [p.name for p in ck.all()] == ["step-000002", "step-000003"]
+
+
+@pytest.mark.parametrize("keep", [1, 2])
+def test_a_checkpoint_the_disk_has_no_room_for_stops_the_run_naming_sizes_and_keeps_the_newest(tmp_path, monkeypatch, keep):
+    ck, model, opt, sch, size = _two_checkpoints(tmp_path, keep=keep)
+    kept = [p.name for p in ck.all()]
+    monkeypatch.setattr(loop.shutil, "disk_usage", _Disk(ck.dir, int((len(kept) + 0.5) * size)))
+    with pytest.raises(loop.TrainingError, match=r"not enough disk for the checkpoint of step 3: it takes [\d,]+ MiB "
+                       r"and .*checkpoints has [\d,]+ MiB free \(the newest checkpoint, step-000002, is intact\)"):
+        ck.save(3, model, opt, sch, {"step": 3})
+    assert [p.name for p in ck.all()] == ["step-000002"]  # step 1 (keep=2) went first: this save drops it anyway
+    assert not list(ck.dir.glob(".tmp-*"))
+    m2, o2, s2 = _big()
+    assert ck.load(ck.latest(), m2, o2, s2)["step"] == 2 and torch.equal(m2.weight, model.weight)
+
+
+def test_a_disk_that_fills_during_the_write_stops_the_run_and_leaves_no_temp_dir(tmp_path, monkeypatch):
+    import errno
+    from pathlib import Path
+
+    ck, model, opt, sch, _ = _two_checkpoints(tmp_path, keep=2)
+
+    def full(obj, f):
+        Path(f).write_bytes(b"half a checkpoint")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(loop.torch, "save", full)
+    with pytest.raises(loop.TrainingError, match=r"the disk filled while writing the checkpoint of step 3 in .*"
+                       r"\(the newest checkpoint, step-000002, is intact; its temp dir removed\)"):
+        ck.save(3, model, opt, sch, {"step": 3})
+    assert [p.name for p in ck.all()] == ["step-000001", "step-000002"] and not list(ck.dir.glob(".tmp-*"))
+
+
 def test_metrics_truncate_after(tmp_path):
     m = loop.MetricsLog(tmp_path / "metrics.jsonl", 10, quiet=True)
     for s in (1, 2, 3, 4):
