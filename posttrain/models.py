@@ -31,7 +31,7 @@ from typing import Iterable
 
 import torch
 
-from posttrain.errors import ModelError
+from posttrain.errors import ModelError, TrainingError
 from posttrain.runtime import DTYPES, dtype_problem
 
 PAD_TOKEN = "<|pad|>"
@@ -254,7 +254,8 @@ class reference_view(torch.nn.Module):
 
 
 def save_model(model, tokenizer, out_dir: str | os.PathLike, state_dict: dict | None = None) -> Path:
-    """Save model + tokenizer as a Hugging Face directory, atomically (write to a temp dir, then rename).
+    """Save model + tokenizer as a Hugging Face directory, atomically (write to a temp dir, then rename); a disk
+    that fills during the write raises a TrainingError, the temp dir removed and `out_dir` as it was.
 
     A LoRA-wrapped model is saved merged (base + adapters) as a plain Hugging Face model; the model
     passed in keeps its adapters (the merge is made on a copy of the weights). `state_dict`: the full weights
@@ -274,9 +275,20 @@ def save_model(model, tokenizer, out_dir: str | os.PathLike, state_dict: dict | 
 
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    model.save_pretrained(str(tmp), safe_serialization=True,
-                          **({"state_dict": state_dict} if state_dict is not None else {}))
-    tokenizer.save_pretrained(str(tmp))
+    try:
+        model.save_pretrained(str(tmp), safe_serialization=True,
+                              **({"state_dict": state_dict} if state_dict is not None else {}))
+        tokenizer.save_pretrained(str(tmp))
+    except OSError as e:
+        import errno
+        import shutil
+
+        shutil.rmtree(tmp, ignore_errors=True)
+        if e.errno != errno.ENOSPC:
+            raise
+        raise TrainingError(f"the disk filled while saving the model to {out} (its temp dir removed"
+                            f"{', the one there before kept' if out.exists() else ''}): free some space and rerun "
+                            f"with resume=true, which writes it again from the last checkpoint") from e
     if out.exists():
         import shutil
 

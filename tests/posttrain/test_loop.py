@@ -1,5 +1,6 @@
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -224,7 +225,6 @@ def test_a_checkpoint_the_disk_has_no_room_for_stops_the_run_naming_sizes_and_ke
 
 def test_a_disk_that_fills_during_the_write_stops_the_run_and_leaves_no_temp_dir(tmp_path, monkeypatch):
     import errno
-    from pathlib import Path
 
     ck, model, opt, sch, _ = _two_checkpoints(tmp_path, keep=2)
 
@@ -237,6 +237,27 @@ def test_a_disk_that_fills_during_the_write_stops_the_run_and_leaves_no_temp_dir
                        r"\(the newest checkpoint, step-000002, is intact; its temp dir removed\)"):
         ck.save(3, model, opt, sch, {"step": 3})
     assert [p.name for p in ck.all()] == ["step-000001", "step-000002"] and not list(ck.dir.glob(".tmp-*"))
+
+
+def test_a_disk_that_fills_while_final_is_saved_stops_the_run_and_keeps_the_earlier_one(tiny_lm, tmp_path, monkeypatch):
+    import errno
+
+    from posttrain import models
+
+    src = tiny_lm()
+    model, tok = models.load_model(src), models.load_tokenizer(src)
+    out = models.save_model(model, tok, tmp_path / "final")
+    before = sorted(p.name for p in out.iterdir())
+
+    def full(self, path, **kw):
+        (Path(path) / "model.safetensors").write_bytes(b"half a model")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(type(model), "save_pretrained", full)
+    with pytest.raises(loop.TrainingError, match=r"the disk filled while saving the model to .*final \(its temp dir "
+                       r"removed, the one there before kept\)"):
+        models.save_model(model, tok, out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["final"] and sorted(p.name for p in out.iterdir()) == before
 
 
 def test_metrics_truncate_after(tmp_path):
