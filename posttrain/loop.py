@@ -32,7 +32,6 @@ process and under `accelerate launch` (DDP/FSDP/DeepSpeed): the Accelerator deci
 """
 from __future__ import annotations
 
-import errno
 import hashlib
 import json
 import math
@@ -48,6 +47,7 @@ import numpy as np
 import torch
 
 from posttrain.errors import ConfigError, TrainingError
+from posttrain.models import out_of_disk, tensor_bytes
 from posttrain.runtime import (BF16_MIN_SPEEDUP, adopt_bf16_speedup, bf16_forced, bf16_measured, bf16_speedup,
                                has_accelerator_device, native_bf16, probe_decides_bf16, set_threads, tune_malloc)
 from posttrain.runtime import mixed_precision as resolve_mixed_precision
@@ -582,17 +582,6 @@ def full_state_dict(accelerator, model) -> dict | None:
     return accelerator.get_state_dict(model)
 
 
-def _tensor_bytes(obj: Any) -> int:
-    """Bytes of the tensors in a nested dict / list / tuple (what `torch.save` writes, less pickle's overhead)."""
-    if isinstance(obj, torch.Tensor):
-        return obj.numel() * obj.element_size()
-    if isinstance(obj, dict):
-        return sum(_tensor_bytes(v) for v in obj.values())
-    if isinstance(obj, (list, tuple)):
-        return sum(_tensor_bytes(v) for v in obj)
-    return 0
-
-
 def _newest(ckpts: list[Path]) -> str:
     return f"the newest checkpoint, {ckpts[-1].name}, is intact" if ckpts else "no earlier checkpoint"
 
@@ -627,7 +616,8 @@ class Checkpointer:
                 "extra": extra or {},
             }
             self.dir.mkdir(parents=True, exist_ok=True)
-            self._make_room(step, _tensor_bytes(state))
+            nbytes = tensor_bytes(state)
+            self._make_room(step, nbytes)
             tmp = self.dir / f".tmp-step-{step:06d}-{os.getpid()}"
             if tmp.exists():
                 shutil.rmtree(tmp)
@@ -635,9 +625,10 @@ class Checkpointer:
             try:
                 torch.save(state, tmp / "state.pt")
                 (tmp / "meta.json").write_text(json.dumps({"step": step, "data": data_state or {}}))
-            except OSError as e:
+            except Exception as e:
+                full = out_of_disk(e, tmp, nbytes)
                 shutil.rmtree(tmp, ignore_errors=True)
-                if e.errno != errno.ENOSPC:
+                if not full:
                     raise
                 raise TrainingError(f"the disk filled while writing the checkpoint of step {step} in {self.dir} "
                                     f"({_newest(self.all())}; its temp dir removed)") from e
@@ -663,8 +654,8 @@ class Checkpointer:
             shutil.rmtree(old, ignore_errors=True)
         free = shutil.disk_usage(self.dir).free
         if free < need:
-            raise TrainingError(f"not enough disk for the checkpoint of step {step}: it takes {need / 2**20:,.0f} "
-                                f"MiB and {self.dir} has {free / 2**20:,.0f} MiB free ({_newest(self.all())}); "
+            raise TrainingError(f"not enough disk for the checkpoint of step {step}: it takes {need / 2**20:,.1f} "
+                                f"MiB and {self.dir} has {free / 2**20:,.1f} MiB free ({_newest(self.all())}); "
                                 f"free some space, or lower keep_checkpoints, then resume=true")
 
     def all(self) -> list[Path]:

@@ -253,6 +253,32 @@ class reference_view(torch.nn.Module):
         return self.inner.get_base_model()
 
 
+def tensor_bytes(obj) -> int:
+    """Bytes of the tensors in a nested dict / list / tuple: what `torch.save` or safetensors writes of them."""
+    if isinstance(obj, torch.Tensor):
+        return obj.numel() * obj.element_size()
+    if isinstance(obj, dict):
+        return sum(tensor_bytes(v) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(tensor_bytes(v) for v in obj)
+    return 0
+
+
+def out_of_disk(error: BaseException, partial: str | os.PathLike, size: int) -> bool:
+    """Whether a write of about `size` bytes that raised `error`, having written `partial` (a file or directory)
+    so far, failed for want of disk. torch.save raises a bare RuntimeError on a full disk and safetensors its own
+    error ("os error 28"): ENOSPC, that message, or bytes written plus bytes still free short of `size`."""
+    import errno
+    import shutil
+
+    if (isinstance(error, OSError) and error.errno == errno.ENOSPC) or "No space left on device" in str(error):
+        return True
+    partial = Path(partial)
+    files = [partial] if partial.is_file() else list(partial.rglob("*")) if partial.is_dir() else []
+    written = sum(f.stat().st_size for f in files if f.is_file())
+    return written + shutil.disk_usage(partial.parent).free < size
+
+
 def save_model(model, tokenizer, out_dir: str | os.PathLike, state_dict: dict | None = None) -> Path:
     """Save model + tokenizer as a Hugging Face directory, atomically (write to a temp dir, then rename); a disk
     that fills during the write raises a TrainingError, the temp dir removed and `out_dir` as it was.
@@ -279,12 +305,12 @@ def save_model(model, tokenizer, out_dir: str | os.PathLike, state_dict: dict | 
         model.save_pretrained(str(tmp), safe_serialization=True,
                               **({"state_dict": state_dict} if state_dict is not None else {}))
         tokenizer.save_pretrained(str(tmp))
-    except OSError as e:
-        import errno
+    except Exception as e:
         import shutil
 
+        full = out_of_disk(e, tmp, tensor_bytes(state_dict if state_dict is not None else model.state_dict()))
         shutil.rmtree(tmp, ignore_errors=True)
-        if e.errno != errno.ENOSPC:
+        if not full:
             raise
         raise TrainingError(f"the disk filled while saving the model to {out} (its temp dir removed"
                             f"{', the one there before kept' if out.exists() else ''}): free some space and rerun "

@@ -214,8 +214,8 @@ def test_a_checkpoint_the_disk_has_no_room_for_stops_the_run_naming_sizes_and_ke
     ck, model, opt, sch, size = _two_checkpoints(tmp_path, keep=keep)
     kept = [p.name for p in ck.all()]
     monkeypatch.setattr(loop.shutil, "disk_usage", _Disk(ck.dir, int((len(kept) + 0.5) * size)))
-    with pytest.raises(loop.TrainingError, match=r"not enough disk for the checkpoint of step 3: it takes [\d,]+ MiB "
-                       r"and .*checkpoints has [\d,]+ MiB free \(the newest checkpoint, step-000002, is intact\)"):
+    with pytest.raises(loop.TrainingError, match=r"not enough disk for the checkpoint of step 3: it takes [\d,.]+ MiB "
+                       r"and .*checkpoints has [\d,.]+ MiB free \(the newest checkpoint, step-000002, is intact\)"):
         ck.save(3, model, opt, sch, {"step": 3})
     assert [p.name for p in ck.all()] == ["step-000002"]  # step 1 (keep=2) went first: this save drops it anyway
     assert not list(ck.dir.glob(".tmp-*"))
@@ -223,25 +223,60 @@ def test_a_checkpoint_the_disk_has_no_room_for_stops_the_run_naming_sizes_and_ke
     assert ck.load(ck.latest(), m2, o2, s2)["step"] == 2 and torch.equal(m2.weight, model.weight)
 
 
-def test_a_disk_that_fills_during_the_write_stops_the_run_and_leaves_no_temp_dir(tmp_path, monkeypatch):
-    import errno
+# What a full disk raises: torch.save a bare RuntimeError from its zip writer, safetensors its own error (both seen
+# on a 2 MiB tmpfs, torch 2.13, safetensors 0.7), plain writes OSError(ENOSPC).
+TORCH_FULL = RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 576 vs 534")
+SAFETENSORS_FULL = RuntimeError("Error while serializing: I/O error: No space left on device (os error 28)")
 
-    ck, model, opt, sch, _ = _two_checkpoints(tmp_path, keep=2)
 
-    def full(obj, f):
+@pytest.mark.parametrize("error, disk_left, full", [
+    (OSError(28, "No space left on device"), None, True),
+    (TORCH_FULL, 0, True),  # no errno: the bytes written plus those free fall short of the checkpoint
+    (SAFETENSORS_FULL, None, True),
+    (TORCH_FULL, None, False),  # the disk had room: some other failure, raised as it is
+])
+def test_a_write_that_fails_on_a_full_disk_stops_the_run_and_leaves_no_temp_dir(tmp_path, monkeypatch, error,
+                                                                                 disk_left, full):
+    ck, model, opt, sch, size = _two_checkpoints(tmp_path, keep=2)
+    disk = _Disk(ck.dir, 10 * size + 2**21)
+
+    def failing_save(obj, f):
         Path(f).write_bytes(b"half a checkpoint")
-        raise OSError(errno.ENOSPC, "No space left on device")
+        if disk_left is not None:  # something else filled the disk meanwhile
+            disk.capacity = sum(p.stat().st_size for p in ck.dir.rglob("*") if p.is_file()) + disk_left
+        raise error
 
-    monkeypatch.setattr(loop.torch, "save", full)
-    with pytest.raises(loop.TrainingError, match=r"the disk filled while writing the checkpoint of step 3 in .*"
-                       r"\(the newest checkpoint, step-000002, is intact; its temp dir removed\)"):
-        ck.save(3, model, opt, sch, {"step": 3})
+    monkeypatch.setattr(loop.shutil, "disk_usage", disk)
+    monkeypatch.setattr(loop.torch, "save", failing_save)
+    if full:
+        with pytest.raises(loop.TrainingError, match=r"the disk filled while writing the checkpoint of step 3 in "
+                           r".*\(the newest checkpoint, step-000002, is intact; its temp dir removed\)"):
+            ck.save(3, model, opt, sch, {"step": 3})
+    else:
+        with pytest.raises(type(error), match="enforce fail"):
+            ck.save(3, model, opt, sch, {"step": 3})
     assert [p.name for p in ck.all()] == ["step-000001", "step-000002"] and not list(ck.dir.glob(".tmp-*"))
 
 
-def test_a_disk_that_fills_while_final_is_saved_stops_the_run_and_keeps_the_earlier_one(tiny_lm, tmp_path, monkeypatch):
-    import errno
+def test_out_of_disk_tells_a_full_disk_from_other_write_failures(tmp_path, monkeypatch):
+    from posttrain.models import out_of_disk
 
+    part = tmp_path / "partial"
+    part.mkdir()
+    (part / "a").write_bytes(b"x" * 1000)
+    import collections
+
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(loop.shutil, "disk_usage", lambda p: usage(10**6, 10**6 - 500, 500))
+    assert out_of_disk(OSError(28, "No space left on device"), part, 10**9)
+    assert out_of_disk(SAFETENSORS_FULL, part, 10**9)
+    assert out_of_disk(TORCH_FULL, part, 2000)  # 1000 written + 500 free < 2000
+    assert not out_of_disk(TORCH_FULL, part, 1500)  # it would have fit
+    assert not out_of_disk(OSError(13, "Permission denied"), part, 1500)
+    assert out_of_disk(TORCH_FULL, tmp_path / "never-written", 501)
+
+
+def test_a_disk_that_fills_while_final_is_saved_stops_the_run_and_keeps_the_earlier_one(tiny_lm, tmp_path, monkeypatch):
     from posttrain import models
 
     src = tiny_lm()
@@ -251,7 +286,7 @@ def test_a_disk_that_fills_while_final_is_saved_stops_the_run_and_keeps_the_earl
 
     def full(self, path, **kw):
         (Path(path) / "model.safetensors").write_bytes(b"half a model")
-        raise OSError(errno.ENOSPC, "No space left on device")
+        raise SAFETENSORS_FULL
 
     monkeypatch.setattr(type(model), "save_pretrained", full)
     with pytest.raises(loop.TrainingError, match=r"the disk filled while saving the model to .*final \(its temp dir "
