@@ -26,6 +26,8 @@ class HFForward:
         self.model = model
         self.device = model_device(model)
         self.keep_kw = {"logits_to_keep": 1} if accepts(model, "logits_to_keep") else {}
+        # transformers 5.2x renamed the KV cache `cache`, in and out; `past_key_values` warns and goes in 5.40
+        self.cache_key = "cache" if accepts(model, "cache") else "past_key_values"
 
     def start(self, rows: int, cols: int, max_pos: int) -> None:
         self.mask = torch.ones(rows, cols, dtype=torch.long, device=self.device)
@@ -33,7 +35,7 @@ class HFForward:
 
     def _call(self, **kw):
         out = self.model(use_cache=True, **kw, **self.keep_kw)
-        self.past = out.past_key_values
+        self.past = out[self.cache_key]
         return out.logits[:, -1]
 
     def prefill(self, ids, valid, pos, row_of):
@@ -61,7 +63,7 @@ class HFForward:
     def decode(self, tok, pos, col: int):
         B = tok.shape[0]
         return self._call(input_ids=tok, attention_mask=self.mask[:B, :col + 1], position_ids=pos[:, None],
-                          past_key_values=self.past)
+                          **{self.cache_key: self.past})
 
     def select(self, order: list[int], col: int) -> None:
         if order == list(range(len(order))):
