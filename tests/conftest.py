@@ -14,6 +14,7 @@
 - `write_jsonl(path, rows)`: rows as a JSONL file; returns the path.
 - `perturbed_sampler(generate, sigma)`: a rollout `generate` whose recorded log-probs are off by N(0, sigma^2)
   per token (seeded): a sampler that is not the trainer, for the rollout-correction tests.
+- `_drop_run_weights` (automatic): a passed test's checkpoints and model weights under its tmp_path are deleted.
 - `cuda` (tests marked `cuda`): skipped, naming why, where torch sees no CUDA GPU (`pytest_runtest_setup`); on a
   GPU machine they run like the rest (each xdist worker that touches the GPU makes its own CUDA context, ~0.5 GB).
 - `learning` (tests marked `learning`): the seed and thread count of a run whose result is a learned number,
@@ -106,6 +107,34 @@ def _restore_torch_threads():
     n = torch.get_num_threads()
     yield
     torch.set_num_threads(n)
+
+
+_PASSED = pytest.StashKey[bool]()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item, call):
+    report = yield
+    if call.when == "call":
+        item.stash[_PASSED] = report.passed
+    return report
+
+
+@pytest.fixture(autouse=True)
+def _drop_run_weights(request):
+    """Once a test has passed, the checkpoints and model weights its runs wrote under its tmp_path go (pytest keeps
+    every tmp_path of its last three sessions; a run of the suite left ~4.5 GB on one worker, 60% of it
+    checkpoints). The rest stays: a later test may still import a verifier module written there. A failed test
+    keeps everything."""
+    tmp = request.getfixturevalue("tmp_path") if "tmp_path" in request.fixturenames else None
+    yield
+    if tmp is not None and request.node.stash.get(_PASSED, False):
+        import shutil
+
+        for d in list(tmp.rglob("checkpoints")):
+            shutil.rmtree(d, ignore_errors=True)
+        for f in tmp.rglob("*.safetensors"):
+            f.unlink(missing_ok=True)
 
 
 @pytest.fixture(scope="module")
