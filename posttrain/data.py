@@ -675,12 +675,22 @@ def to_device(batch: dict[str, Any], device) -> dict[str, Any]:
 
 
 def token_groups(spans: Sequence[tuple[int, int]], max_rows: int = 0, max_tokens: int = 0,
-                 rows_per_item: int = 1) -> list[list[int]]:
-    """Consecutive groups of item indices for micro-batches: each group's padded size, rows x (its widest
-    column span: max end - min start, the columns a trimmed batch keeps), stays within `max_tokens`, and it
-    has at most `max_rows` items (0: no limit on either). An item (`rows_per_item` rows: 2 for a preference
-    pair) wider than the budget forms a group alone. spans: (start, end) columns of each item's tokens
-    (unpadded lists: (0, length))."""
+                 rows_per_item: int = 1, by_length: bool = False) -> list[list[int]]:
+    """Groups of item indices for micro-batches: each group's padded size, rows x (its widest column span: max
+    end - min start, the columns a trimmed batch keeps), stays within `max_tokens`, and it has at most
+    `max_rows` items (0: no limit on either). An item (`rows_per_item` rows: 2 for a preference pair) wider
+    than the budget forms a group alone. spans: (start, end) columns of each item's tokens (unpadded lists:
+    (0, length)).
+
+    Groups are runs of consecutive items, or with `by_length` runs of the items ordered by width (then start),
+    so that short rows are padded to short rows and a step needs fewer, less padded micro-batches. Unlike
+    transformers' `group_by_length`, which orders the whole dataset by length, this regroups the rows of one
+    step only: the step's gradient is the same sum. Each group lists its indices in ascending order and groups
+    come in the order of their first index, so a single group is the items as they were."""
+    if by_length:
+        order = sorted(range(len(spans)), key=lambda i: (spans[i][1] - spans[i][0], spans[i][0]))
+        runs = token_groups([spans[i] for i in order], max_rows, max_tokens, rows_per_item)
+        return sorted((sorted(order[j] for j in g) for g in runs), key=lambda g: g[0])
     groups: list[list[int]] = []
     cur: list[int] = []
     lo = hi = 0

@@ -244,7 +244,7 @@ def batched_logprobs(model, batch: Any, micro_batch_size: int = 16, *, temperatu
                      return_entropy: bool = False, max_tokens: int = 0):
     """`sequence_logprobs` without grad over a RolloutBatch (or a mapping with input_ids, attention_mask,
     completion_mask) in micro-batches of at most `micro_batch_size` rows and `max_tokens` padded tokens (0: no
-    token limit); all-padding columns of each micro-batch are trimmed first.
+    token limit), rows of like length together; all-padding columns of each micro-batch are trimmed first.
     Returns (logps (B, T), entropy (B, T) | None) on the batch's device."""
     get = (lambda k: batch[k]) if isinstance(batch, Mapping) else (lambda k: getattr(batch, k))
     input_ids, attention_mask = get("input_ids"), get("attention_mask")
@@ -257,8 +257,9 @@ def batched_logprobs(model, batch: Any, micro_batch_size: int = 16, *, temperatu
     B, T = input_ids.shape
     out = torch.zeros(B, T, dtype=torch.float32, device=input_ids.device)
     ent_out = torch.zeros_like(out) if return_entropy else None
-    for group in token_groups(row_spans(attention_mask), micro_batch_size, max_tokens):
-        sl = slice(group[0], group[-1] + 1)
+    for group in token_groups(row_spans(attention_mask), micro_batch_size, max_tokens, by_length=True):
+        run = group[-1] - group[0] + 1 == len(group)  # consecutive rows: a view, not a copy
+        sl = slice(group[0], group[-1] + 1) if run else torch.as_tensor(group, device=input_ids.device)
         am = attention_mask[sl]
         live = am.any(0).nonzero()
         if live.numel() == 0:

@@ -687,12 +687,12 @@ def pair_groups(pairs: Sequence[TokenizedPair], max_rows: int, max_tokens: int =
                 share_prompt: bool = False) -> list[list[int]]:
     """Indices of `pairs` in micro-batches of at most `max_rows` pairs and `max_tokens` padded tokens as
     `collate_pairs` lays them out: two rows per pair (prompt + the longer side), or one shared-prompt row
-    (prompt + chosen + rejected)."""
+    (prompt + chosen + rejected); grouped by length (`data.token_groups`)."""
     if share_prompt:
         return token_groups([(0, len(p.prompt) + len(p.chosen) + len(p.rejected)) for p in pairs], max_rows,
-                                 max_tokens)
+                            max_tokens, by_length=True)
     return token_groups([(0, len(p.prompt) + max(len(p.chosen), len(p.rejected))) for p in pairs], max_rows,
-                             max_tokens, rows_per_item=2)
+                        max_tokens, rows_per_item=2, by_length=True)
 
 
 @torch.no_grad()
@@ -703,8 +703,13 @@ def reference_logps(model, pairs: list[TokenizedPair], pad_id: int, micro_batch_
     `micro_batch_size` pairs and `max_tokens` padded tokens (`pair_groups`)."""
     was_training = model.training
     model.eval()
-    chunks = [[pairs[i] for i in g] for g in pair_groups(pairs, micro_batch_size, max_tokens, share_prompt)]
-    parts = [by_side(*pair_logps(model, collate_pairs(chunk, pad_id, share_prompt)), len(chunk)) for chunk in chunks]
+    groups = pair_groups(pairs, micro_batch_size, max_tokens, share_prompt)
+    parts = [by_side(*pair_logps(model, collate_pairs([pairs[i] for i in g], pad_id, share_prompt)), len(g))
+             for g in groups]
     model.train(was_training)
-    return {k: torch.cat([p[k].cpu() for p in parts]) if parts else torch.zeros(0)
-            for k in ("chosen", "rejected", "chosen_tokens", "rejected_tokens")}
+    where = torch.tensor([i for g in groups for i in g], dtype=torch.long)  # the pairs' positions, group by group
+    out = {}
+    for k in ("chosen", "rejected", "chosen_tokens", "rejected_tokens"):
+        got = torch.cat([p[k].cpu() for p in parts]) if parts else torch.zeros(0)
+        out[k] = torch.empty_like(got).index_copy_(0, where, got) if parts else got
+    return out

@@ -98,20 +98,23 @@ def trim_columns(rows: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 
 def micro_batches(rows: dict[str, torch.Tensor], idx: torch.Tensor, micro: int, aggregation: str,
-                  rank: int = 0, world: int = 1, max_tokens: int = 0) -> list[tuple[dict[str, torch.Tensor], float, float]]:
+                  rank: int = 0, world: int = 1, max_tokens: int = 0,
+                  by_length: bool = True) -> list[tuple[dict[str, torch.Tensor], float, float]]:
     """This process's micro-batches of the minibatch `idx` (process r takes rows r, r + W, ... of it), all-padding
     columns trimmed, each with (its share of the minibatch loss, its share of the minibatch's loss tokens).
 
     Shares are fractions of the WHOLE minibatch (all processes): aggregation "token_mean" weighs by loss
     tokens (`rows["loss_mask"]`), the others by rows, so the shares of all micro-batches of all processes sum
     to 1 and the accumulated (and, under DDP, averaged x W) gradient is the whole minibatch's aggregation.
-    A micro-batch has at most `micro` rows (0: no row limit) and `max_tokens` padded tokens (0: no limit).
+    A micro-batch has at most `micro` rows (0: no row limit) and `max_tokens` padded tokens (0: no limit), rows
+    of like length together unless `by_length=False` (`data.token_groups`).
     A process without rows gets one copy of a real row with share 0; `loop.optimizer_step` evens out the
     numbers of micro-batches across processes, so the DDP all-reduces line up."""
     total_rows = len(idx)
     total_tokens = float(rows["loss_mask"][idx].sum())
     mine = idx[rank::world]
-    groups = token_groups(row_spans(rows["attention_mask"][mine]), micro, max_tokens) if len(mine) else [[]]
+    groups = token_groups(row_spans(rows["attention_mask"][mine]), micro, max_tokens, by_length=by_length) \
+        if len(mine) else [[]]
     out = []
     for g in groups:
         sel = mine[torch.as_tensor(g, dtype=torch.long, device=mine.device)]

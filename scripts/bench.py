@@ -50,6 +50,17 @@ Sections (`--only NAME`, repeatable; all of them by default, in this order):
             trainers, tools). --quick: 8 + 12 min measured (engine, step and trainers; tools). The bf16
             rows run where bf16 is native and faster (`--real-bf16 auto`, the default: what run.mixed_precision=auto
             decides); on other CPUs bf16 is emulated, 2-5x slower than fp32, and `--real-bf16 yes` forces them.
+  microbatch micro-batches of rows of like length (`data.token_groups(by_length=True)`, what every trainer's
+            micro-batching does) against consecutive ones (what it did before), ours against ours on the same rows,
+            random-init `small` model, optimizer and budget (--micro-tokens padded tokens per micro-batch, default
+            1024): an SFT step (`data.token_groups` as `posttrain sft` calls it, `logprobs.nll_sum`,
+            `loop.optimizer_step`; 16 rows of 32-512 tokens, log-uniform) and a policy update
+            (`sharding.micro_batches`, `logprobs.sequence_logprobs` forward + backward, AdamW; 2 prompts of 40-80
+            tokens x 8 completions of 8-256, left-padded prompts); synthetic token ids, lengths drawn so that a few
+            long rows dominate, as in chat data (rows of even length, e.g. tiny-summarize's 33-85 tokens, gain
+            nothing). Padded tokens, micro-batches per step, s/step and the ratio. No TRL side: TRL's micro-batches
+            are its per-device batches, a fixed number of consecutive rows each padded to its longest
+            (`group_by_length` orders the whole dataset instead).
   multiturn multi-turn episodes with a tool (posttrain.rollout.multiturn; a random tiny chat model whose turns end
             at eos after a few tokens, every turn answered by the calculator, <= 4 turns) against single-turn
             rollouts of the same number of sampled tokens (ignore_eos) at each batch size; the time ratio next to
@@ -661,6 +672,111 @@ def bench_sft(args) -> dict:
     return dict(batch=ctx.B, steps=ctx.S, tokens=ctx.tokens, loss_tokens=ctx.loss_tokens,
                 ours_tok_s=ctx.tokens / mo, trl_tok_s=ctx.tokens / mt, ratio=mt / mo,
                 ours_times=times["posttrain"], trl_times=times["trl"], memory=mem)
+
+
+def _length_rows(n: int, lo: int, hi: int, vocab: int, seed: int) -> list[list[int]]:
+    """n random token lists, lengths log-uniform in [lo, hi] (a long tail of long rows, as in chat data)."""
+    rng = random.Random(seed)
+    return [[rng.randrange(4, vocab) for _ in range(int(round(lo * (hi / lo) ** rng.random())))] for _ in range(n)]
+
+
+def bench_microbatch(args) -> dict:
+    """Micro-batches of rows of like length against consecutive ones, ours against ours (see the docstring)."""
+    from posttrain import loop, sharding
+    from posttrain.data import collate_completions, token_groups
+    from posttrain.logprobs import nll_sum, sequence_logprobs
+
+    tok = _summarize_tokenizer()
+    base = build_model("small", tok, seed=0).to(args.device)
+    V, B, S, budget = len(tok), 16, 2 if args.quick else 4, args.micro_tokens
+    repeats = 2 if args.quick else 3
+    # SFT: prompt + completion rows, 32-512 tokens (a quarter of them the completion)
+    sft_rows = []
+    for ids in _length_rows(B * S, 32, 512, V, seed=1):
+        k = max(1, len(ids) // 4)
+        sft_rows.append((ids[:-k], ids[-k:]))
+    # policy update: 2 prompts x 8 completions a step, prompts 40-80 tokens left-padded, completions 8-256
+    rng = random.Random(2)
+    upd_rows = []
+    for _ in range(S):
+        for _ in range(2):
+            prompt = [rng.randrange(4, V) for _ in range(rng.randrange(40, 81))]
+            upd_rows += [(prompt, c) for c in _length_rows(8, 8, 256, V, seed=rng.randrange(10**6))]
+
+    def upd_batch(rows):
+        P = max(len(p) for p, _ in rows)
+        C = max(len(c) for _, c in rows)
+        ids = torch.zeros(len(rows), P + C, dtype=torch.long)
+        am, cm = torch.zeros_like(ids), torch.zeros_like(ids)
+        for i, (p, c) in enumerate(rows):
+            ids[i, P - len(p):P + len(c)] = torch.tensor(p + c)
+            am[i, P - len(p):P + len(c)] = 1
+            cm[i, P:P + len(c)] = 1
+        adv = torch.randn(len(rows), generator=torch.Generator().manual_seed(len(rows)))
+        return {"input_ids": ids, "attention_mask": am, "completion_mask": cm, "loss_mask": cm,
+                "advantages": adv[:, None].expand(-1, P + C).contiguous()}
+
+    upd_batches = [upd_batch(upd_rows[s * B:(s + 1) * B]) for s in range(S)]
+
+    def padded(mbs):
+        return sum(int(mb["input_ids"].numel()) for mb in mbs)
+
+    def sft_mbs(step, by_length):  # as `posttrain sft` groups its rows
+        rows = sft_rows[step * B:(step + 1) * B]
+        groups = token_groups([(0, len(p) + len(c)) for p, c in rows], 0, budget, by_length=by_length)
+        return [collate_completions([rows[i] for i in g], tok.pad_token_id) for g in groups]
+
+    def upd_mbs(step, by_length):
+        rows = upd_batches[step]
+        return [mb for mb, _, _ in sharding.micro_batches(rows, torch.arange(B), 0, "token_mean", max_tokens=budget,
+                                                           by_length=by_length)]
+
+    def runner(make, loss, by_length):
+        def run() -> float:
+            model = copy.deepcopy(base)
+            accelerator = loop.setup(0)
+            t0 = time.perf_counter()
+            optimizer = loop.build_optimizer(model, 1e-5)
+            model, optimizer = accelerator.prepare(model, optimizer)
+            scheduler = loop.build_scheduler(optimizer, 0, S, "constant")
+            for step in range(S):
+                mbs = make(step, by_length)
+                n = float(sum(mb["completion_mask"].sum() for mb in mbs))
+                loop.optimizer_step(accelerator, model, optimizer, scheduler, mbs,
+                                    lambda mb: (loss(model, mb) / n, {}), 1.0, step + 1)
+            _sync(args.device)
+            return time.perf_counter() - t0
+        return run
+
+    def sft_loss(model, mb):
+        return nll_sum(model, mb)[0]
+
+    def upd_loss(model, mb):
+        lp, _ = sequence_logprobs(model, mb["input_ids"], mb["attention_mask"], mb["completion_mask"])
+        return -(lp * mb["advantages"] * mb["completion_mask"]).sum()
+
+    print(f"small preset: {count_parameters(base) / 1e6:.2f}M parameters; {S} steps x {B} rows, budget {budget} "
+          f"padded tokens per micro-batch; lengths drawn log-uniform (SFT rows 32-512 tokens; update rows: "
+          f"prompts 40-80 left-padded, completions 8-256)")
+    print(f"{'workload':<34} {'grouping':<12} {'real tok':>8} {'padded':>8} {'micro':>6} {'s/step':>7} {'ratio':>7}")
+    out = {}
+    for name, make, loss, real in (
+            ("SFT step", sft_mbs, sft_loss, sum(len(p) + len(c) for p, c in sft_rows)),
+            ("policy update (log-probs + AdamW)", upd_mbs, upd_loss, sum(len(p) + len(c) for p, c in upd_rows))):
+        runners = {"consecutive": runner(make, loss, False), "by length": runner(make, loss, True)}
+        times = _alternate(runners, repeats, args.device)
+        row = {}
+        for grouping, by_length in (("consecutive", False), ("by length", True)):
+            mbs = [make(s, by_length) for s in range(S)]
+            row[grouping] = dict(padded=sum(padded(m) for m in mbs), micro=sum(len(m) for m in mbs) / S,
+                                 s_step=statistics.median(times[grouping]) / S, times=times[grouping])
+        for grouping in ("consecutive", "by length"):
+            r = row[grouping]
+            print(f"{name:<34} {grouping:<12} {real:>8} {r['padded']:>8} {r['micro']:>6.1f} {r['s_step']:>7.3f} "
+                  f"{row['consecutive']['s_step'] / r['s_step']:>6.2f}x")
+        out[name] = dict(real_tokens=real, **row)
+    print("ratio = consecutive time / this time, same rows, model, budget and optimizer; medians of alternating runs.")
+    return dict(budget=budget, steps=S, batch=B, workloads=out)
 
 
 # ------------------------------------------------------------------ section: rm
@@ -2166,6 +2282,7 @@ SECTIONS = {
     "grpo": bench_grpo,
     "distill": bench_distill,
     "scaling": bench_scaling,
+    "microbatch": bench_microbatch,
     "multiturn": bench_multiturn,
     "tools": bench_tools,
     "real": bench_real,
@@ -2196,6 +2313,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=None, help="timed runs per implementation in generate "
                                                               "(default 5 quick, 9)")
     ap.add_argument("--dpo-batch", type=int, default=8, help="pairs per step in the dpo section (default 8)")
+    ap.add_argument("--micro-tokens", type=int, default=1024,
+                    help="padded tokens per micro-batch in the microbatch section (default 1024)")
     ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory probes (fresh processes)")
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
     ap.add_argument("--real", type=Path, default=Path(__file__).resolve().parents[1] / "models" / "smollm2-135m-instruct",

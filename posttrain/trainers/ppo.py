@@ -820,7 +820,11 @@ def rollout_values(accelerator, value, batch, micro: int, budget: int = 0) -> to
     `sharding.sharded_logprobs`)."""
     where = sharding.positions(batch.input_ids.shape[0], accelerator.process_index, accelerator.num_processes)
     vm, ids, am = accelerator.unwrap_model(value).eval(), batch.input_ids[where], batch.attention_mask[where]
-    local = torch.cat([vm(ids[g], am[g]) for g in token_groups(row_spans(am), micro, budget)])  # (B/W, T)
+    local = None  # (B/W, T) on the value model's device
+    for g in token_groups(row_spans(am), micro, budget, by_length=True):
+        v = vm(ids[g], am[g])
+        local = v.new_zeros(ids.shape) if local is None else local
+        local[g] = v
     values = sharding.gather_row_tensor(accelerator, local, where)  # (B, T)
     return torch.where(batch.completion_mask.bool(), values, torch.zeros_like(values))
 
@@ -829,7 +833,7 @@ def minibatch_parts(data: dict, whole: torch.Tensor, accelerator, budget: int) -
     """This process's rows r, r + W, ... of the minibatch `whole`, in micro-batches of at most `budget` padded
     tokens, all-padding columns trimmed."""
     mine = whole[accelerator.process_index::accelerator.num_processes]
-    groups = token_groups(row_spans(data["attention_mask"][mine]), 0, budget)
+    groups = token_groups(row_spans(data["attention_mask"][mine]), 0, budget, by_length=True)
     return [sharding.trim_columns({k: v[mine[torch.as_tensor(g, device=mine.device)]] for k, v in data.items()})
             for g in groups]
 

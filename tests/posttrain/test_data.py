@@ -260,6 +260,30 @@ def test_token_groups_bound_rows_and_padded_tokens():
     assert token_groups([]) == []
 
 
+def test_token_groups_by_length_pad_short_rows_to_short_rows():
+    from posttrain.data import token_groups
+
+    def padded(spans, groups):
+        return sum(len(g) * (max(spans[i][1] for i in g) - min(spans[i][0] for i in g)) for g in groups)
+
+    spans = [(0, 10), (0, 2), (0, 9), (0, 3), (0, 10), (0, 2)]  # long and short rows interleaved
+    assert token_groups(spans, max_rows=2) == [[0, 1], [2, 3], [4, 5]]  # 2 x 10 + 2 x 9 + 2 x 10 = 58 tokens
+    by_len = token_groups(spans, max_rows=2, by_length=True)
+    assert by_len == [[0, 4], [1, 5], [2, 3]]  # widths 2, 2 | 3, 9 | 10, 10: ascending within, by first index
+    assert padded(spans, by_len) == 4 + 18 + 20 < 58
+    assert token_groups(spans, max_tokens=24, by_length=True) == [[0, 2], [1, 3, 5], [4]]  # 2 x 10, 3 x 3, 1 x 10
+    assert padded(spans, token_groups(spans, max_tokens=24, by_length=True)) == 39  # consecutive: 58, as above
+    # one group is the items in their order (no limits, or everything fits), so a step without a split is as it was
+    assert token_groups(spans, by_length=True) == token_groups(spans) == [[0, 1, 2, 3, 4, 5]]
+    # left-padded rows: the width is end - start; every index once, every group within the budget
+    left = [(8 - w, 8) for w in (7, 1, 6, 2, 8, 1, 5)]
+    groups = token_groups(left, max_tokens=12, by_length=True)
+    assert sorted(i for g in groups for i in g) == list(range(len(left)))
+    assert all(len(g) == 1 or padded(left, [g]) <= 12 for g in groups)
+    assert padded(left, groups) < padded(left, token_groups(left, max_tokens=12))
+    assert token_groups([], by_length=True) == []
+
+
 def test_row_spans_of_a_padded_batch():
     import torch
 

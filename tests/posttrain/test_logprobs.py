@@ -129,6 +129,22 @@ def test_batched_equals_full_and_trims(model):
         batched_logprobs(model, {"input_ids": ids, "attention_mask": am}, micro_batch_size=0)
 
 
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_batched_by_length_puts_every_row_back_in_its_place(model, side):
+    """Long and short rows interleaved: grouped by length, the micro-batches are rows 0, 2, 4 and 1, 3, 5 (not
+    consecutive), and each row's log-probs and entropies land in its own row."""
+    seqs = [s + s[:6] if i % 2 == 0 else s[:4] for i, s in enumerate(_seqs(6, seed=5))]
+    ids, am = _pad(seqs, side)
+    with torch.no_grad():
+        lp_one, ent_one = zip(*(sequence_logprobs(model, ids[i:i + 1], am[i:i + 1], return_entropy=True)
+                                for i in range(len(seqs))))
+    batched, ent = batched_logprobs(model, {"input_ids": ids, "attention_mask": am}, micro_batch_size=3,
+                                    return_entropy=True)
+    torch.testing.assert_close(batched, torch.cat(lp_one), atol=1e-4, rtol=1e-6)
+    torch.testing.assert_close(ent, torch.cat(ent_one), atol=1e-4, rtol=1e-6)
+    assert (batched[am == 0] == 0).all()
+
+
 def test_wrapped_model(model):
     class Wrapper(torch.nn.Module):  # stands in for DDP / accelerate wrappers: forwards to .module
         def __init__(self, m):

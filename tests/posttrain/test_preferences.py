@@ -3,6 +3,7 @@ import json
 import random
 
 import pytest
+import torch
 
 from posttrain import preferences
 from posttrain.cli import main
@@ -106,6 +107,27 @@ def test_collate_pairs_puts_chosen_then_rejected():
     assert b["input_ids"][0].tolist() == [5, 6, 7, 1, 0] and b["input_ids"][3].tolist() == [5, 9, 1, 0, 0]
     assert b["completion_mask"][2].tolist() == [False, False, True, True, True]
     assert b["attention_mask"].sum(-1).tolist() == [4, 5, 5, 3]
+
+
+@pytest.mark.parametrize("share_prompt", [True, False])
+def test_reference_logps_keep_the_pairs_order_when_grouped_by_length(tiny, share_prompt):
+    """Long and short pairs interleaved, two pairs per micro-batch: grouped by length they are computed as pairs
+    (0, 2) and (1, 3), and every entry is the pair's own, as one pair at a time gives it."""
+    from posttrain.preferences import TokenizedPair, pair_groups, reference_logps
+
+    model, tok = tiny
+    rng = random.Random(0)
+    pairs = []
+    for i in range(4):
+        n = 40 if i % 2 == 0 else 4
+        pairs.append(TokenizedPair([rng.randrange(5, 200) for _ in range(n)], [rng.randrange(5, 200), 1],
+                                   [rng.randrange(5, 200) for _ in range(3)] + [1], i))
+    assert pair_groups(pairs, 2, 0, share_prompt) == [[0, 2], [1, 3]]
+    grouped = reference_logps(model, pairs, tok.pad_token_id, 2, share_prompt)
+    one = reference_logps(model, pairs, tok.pad_token_id, 1, share_prompt)
+    for k in ("chosen", "rejected", "chosen_tokens", "rejected_tokens"):
+        torch.testing.assert_close(grouped[k], one[k], atol=1e-4, rtol=1e-5)
+    assert grouped["chosen_tokens"].tolist() == [2.0] * 4
 
 
 @pytest.mark.parametrize("fmt", ["jsonl", "parquet"])

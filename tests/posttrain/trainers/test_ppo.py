@@ -3,6 +3,7 @@ import json
 import math
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -203,6 +204,14 @@ def test_value_init_from_the_reward_model_or_the_policy(world):
             torch.testing.assert_close(vals[0, t], reward_forward(rm, ids[:1, :t], am[:1, :t])[0])
         # left padding does not change a row's values
         torch.testing.assert_close(vals[1, 3:], ppo.token_values(v, ids[1:, 2:], am[1:, 2:])[0, 1:])
+        # rollout values in micro-batches grouped by length (rows 1, 3 then 0, 2): each row's values in its place
+        seqs = [[5, 9, 30, 31, 32, 33, 34, 35], [7, 8], [6, 9, 30, 31, 32, 33, 34], [7, 40]]
+        ids, am = left_pad(seqs, pad)
+        one = SimpleNamespace(process_index=0, num_processes=1, unwrap_model=lambda m: m)
+        got = ppo.rollout_values(one, ppo.TokenValueModel(v), SimpleNamespace(input_ids=ids, attention_mask=am,
+                                                                                 completion_mask=am), 2)
+        want = torch.cat([ppo.token_values(v, ids[i:i + 1], am[i:i + 1]) for i in range(len(seqs))]) * am
+        torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
     pv = ppo.build_value_model("policy", world["sft"], None, pad, 0, "cpu")
     sft = load_model(world["sft"]).state_dict()
     inner = pv.state_dict()
