@@ -482,16 +482,26 @@ class Reference:
 def precompute_reference(cfg: DPOConfig, model, data: PairData, pad_id: int, budget: int, say,
                          precision: Callable[[], Any] = contextlib.nullcontext) -> tuple[dict, dict]:
     """Reference log-probs of the held-out pairs and of the training pairs the run draws (the others NaN, unused),
-    under `precision` (the run's autocast: the policy's log-probs are taken in the same precision)."""
+    under `precision` (the run's autocast: the policy's log-probs are taken in the same precision).
+
+    The training pairs go step by step: each step's pairs not drawn before, in micro-batches of their own. A
+    pair's numbers then depend on the seed and the data, not on max_steps (which pairs share a micro-batch moves
+    the last bits of a forward), so a run resumed with a larger max_steps gets the uninterrupted run's numbers."""
     t0, micro = time.time(), cfg.micro_batch_size or cfg.batch_size
     offline_steps = min(cfg.max_steps, cfg.online_every) if cfg.online else cfg.max_steps  # online: then new pairs
-    used = sorted({i for s in range(offline_steps)
-                   for i in loop.batch_indices(len(data.train), cfg.batch_size, cfg.seed, s)})
+    chunks, seen = [], set()
+    for s in range(offline_steps):
+        new = sorted({i for i in loop.batch_indices(len(data.train), cfg.batch_size, cfg.seed, s) if i not in seen})
+        seen.update(new)
+        chunks += [new] if new else []
     with precision():
-        ref_used = reference_logps(model, [data.train[i] for i in used], pad_id, micro, cfg.share_prompt, budget)
+        parts = [reference_logps(model, [data.train[i] for i in c], pad_id, micro, cfg.share_prompt, budget)
+                 for c in chunks]
         ref_heldout = reference_logps(model, data.heldout, pad_id, micro, cfg.share_prompt, budget)
-    ref_train = {k: torch.full((len(data.train),), float("nan")).index_copy(0, torch.tensor(used), v)
-                 for k, v in ref_used.items()}
+    used = torch.tensor([i for c in chunks for i in c], dtype=torch.long)
+    ref_train = {k: torch.full((len(data.train),), float("nan")).index_copy(
+        0, used, torch.cat([p[k] for p in parts]) if parts else torch.zeros(0))
+        for k in ("chosen", "rejected", "chosen_tokens", "rejected_tokens")}
     say(f"[dpo] reference log-probs of {len(used)} training and {len(data.heldout)} held-out pairs "
         f"precomputed in {time.time() - t0:.1f}s; no reference model is kept in memory")
     return ref_train, ref_heldout
