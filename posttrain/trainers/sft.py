@@ -252,11 +252,10 @@ def finish(run: SFTRun) -> Path:
 
 
 # ----------------------------------------------------------------------------- micro-batches and the held-out loss
-def micro_groups(pairs, micro_batch_size: int, max_tokens: int, by_length: bool = True) -> list[list]:
+def micro_groups(pairs, micro_batch_size: int, max_tokens: int) -> list[list]:
     """`data.tokenize_completions` items in micro-batches of at most `micro_batch_size` rows and `max_tokens`
-    padded tokens (`data.token_groups`; rows of like length together unless `by_length=False`)."""
-    groups = token_groups([(0, len(x[0]) + len(x[1])) for x in pairs], micro_batch_size, max_tokens,
-                          by_length=by_length)
+    padded tokens, rows of like length together (`data.token_groups`)."""
+    groups = token_groups([(0, len(x[0]) + len(x[1])) for x in pairs], micro_batch_size, max_tokens, by_length=True)
     return [[pairs[i] for i in g] for g in groups]
 
 

@@ -53,7 +53,7 @@ def test_dpos_reference_log_probs_are_taken_under_the_runs_autocast(monkeypatch)
     cfg = dpo.DPOConfig(batch_size=2, max_steps=2)
     bf16 = lambda: torch.autocast("cpu", dtype=torch.bfloat16)
     dpo.precompute_reference(cfg, None, data, 0, 0, lambda *a: None, bf16)
-    assert seen == [True, True]
+    assert seen == [True, True, True]  # each step's new training pairs (2 steps), then the held-out ones
 
     def pair_logps(model, batch):
         seen.append((model, torch.is_autocast_enabled("cpu")))
@@ -62,4 +62,4 @@ def test_dpos_reference_log_probs_are_taken_under_the_runs_autocast(monkeypatch)
     monkeypatch.setattr(dpo, "pair_logps", pair_logps)
     pool = dpo.Pool(pairs, None)
     dpo.micro_batch_loss(cfg, "policy", "reference", pool, [0, 1], 0, 2, bf16)
-    assert seen[2:] == [("policy", False), ("reference", True)]
+    assert seen[3:] == [("policy", False), ("reference", True)]
