@@ -683,7 +683,7 @@ def _length_rows(n: int, lo: int, hi: int, vocab: int, seed: int) -> list[list[i
 def bench_microbatch(args) -> dict:
     """Micro-batches of rows of like length against consecutive ones, ours against ours (see the docstring)."""
     from posttrain import loop, sharding
-    from posttrain.data import collate_completions, token_groups
+    from posttrain.data import collate_completions, to_device, token_groups
     from posttrain.logprobs import nll_sum, sequence_logprobs
 
     tok = _summarize_tokenizer()
@@ -742,6 +742,7 @@ def bench_microbatch(args) -> dict:
             for step in range(S):
                 mbs = make(step, by_length)
                 n = float(sum(mb["completion_mask"].sum() for mb in mbs))
+                mbs = [to_device(mb, args.device) for mb in mbs]  # where the model is
                 loop.optimizer_step(accelerator, model, optimizer, scheduler, mbs,
                                     lambda mb: (loss(model, mb) / n, {}), 1.0, step + 1)
             _sync(args.device)
