@@ -2,7 +2,7 @@
 import pytest
 
 from posttrain.verifiers.envs import get_env, list_envs
-from posttrain.verifiers.envs.calc import WORD_AUDIT, WordCalcEnv, calculator
+from posttrain.verifiers.envs.calc import PARTIAL_AUDIT, WORD_AUDIT, WORD_PROBLEM, WordCalcEnv, calculator
 
 PROBLEM = {"prompt": "Nora collected 1068 pencils. A friend gives her 806 more pencils. She gives away 131 pencils. "
                      "How many pencils does Nora have at the end?", "answer": "1743"}
@@ -35,3 +35,61 @@ def test_calc_words_episode_with_a_tool_call_is_rewarded_on_its_answer():
     assert calculator("1068+806-131") == "1743"
     ep.finish = "answer"
     assert env.score(PROBLEM, "She ends with 1743 pencils. The answer is 1743.", ep.finish) == (1.0, "correct")
+
+
+def _episode(problem, expressions, answer, finish):
+    """An episode whose first turn makes `expressions`' calculator calls (refused ones answered with the error)."""
+    from posttrain.verifiers.envs import Episode
+    from posttrain.verifiers.envs.base import ToolCall, ToolResult, Turn
+
+    results = []
+    for e in expressions:
+        call = ToolCall("calculator", {"expression": e}, "")
+        try:
+            results.append(ToolResult(call, calculator(e)))
+        except ValueError as err:
+            results.append(ToolResult(call, f"error: {err}", "exception"))
+    turns = [Turn("", results=results)] if results else []
+    return Episode(problem=problem, messages=[], turns=turns + [Turn(answer)], finish=finish)
+
+
+@pytest.mark.parametrize("case, expressions, answer, finish, expected", PARTIAL_AUDIT,
+                         ids=[row[0] for row in PARTIAL_AUDIT])
+def test_calc_words_partial_credit_audit(case, expressions, answer, finish, expected):
+    reward = WordCalcEnv(partial_credit=0.6).reward(_episode(WORD_PROBLEM, expressions, answer, finish))
+    assert reward == pytest.approx(expected)
+    # without partial credit every wrong episode scores 0, and the right one 1
+    plain = WordCalcEnv().reward(_episode(WORD_PROBLEM, expressions, answer, finish))
+    assert plain == (1.0 if expected == 1.0 else 0.0)
+
+
+def test_calc_words_partial_credit_ranks_each_hack_below_the_episode_it_imitates():
+    env = WordCalcEnv(partial_credit=0.6)
+    score = {case: env.reward(_episode(WORD_PROBLEM, e, a, f)) for case, e, a, f, _ in PARTIAL_AUDIT}
+    assert score["hack: padding with a number of its own"] < score["every number, a wrong sign"]
+    assert score["hack: fishing over the numbers"] < score["every number, a wrong sign"]
+    assert score["hack: a call without the problem's numbers"] == score["no call, wrong answer"] == 0.0
+    assert score["every number, a wrong sign"] < score["right call, its result ignored"] < 1.0
+    assert max(s for s in score.values() if s < 1.0) < env.partial_credit + 1e-12
+
+
+def test_calc_words_partial_credit_parts_by_hand():
+    from posttrain.verifiers.envs.calc import credit_parts, running_totals
+
+    assert running_totals(WORD_PROBLEM) == {1068, 1874, 1743}
+    share = {"prompt": "Mia has 96 stickers. She shares them equally among 7 friends.", "answer": "96/7",
+             "meta": {"ops": [["=", 96], ["/", 7]]}}
+    from fractions import Fraction
+    assert running_totals(share) == {96, Fraction(96, 7)}
+    assert running_totals({"prompt": "x", "answer": "12"}) == {12}  # a row without ops: the answer alone
+    ep = _episode(share, ["96/7"], "about 13", "answer")
+    assert credit_parts(share, ep.tool_results()) == {"call": 1.0, "numbers": 1.0, "value": 1.0}  # "96/7 (≈ 13.7)"
+    # a chained call may use an earlier result; a made-up number counts against the numbers part
+    ep = _episode(WORD_PROBLEM, ["1068+806", "1874-131-2"], "1741", "answer")
+    assert credit_parts(WORD_PROBLEM, ep.tool_results()) == {"call": 1.0, "numbers": 3 / 4, "value": 0.5}
+
+
+@pytest.mark.parametrize("bad", [1.0, -0.1, "half"])
+def test_calc_words_partial_credit_out_of_range_is_refused(bad):
+    with pytest.raises(ValueError, match="calc-words partial_credit must be in \\[0, 1\\)"):
+        WordCalcEnv(partial_credit=bad)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import random
 import re
+from fractions import Fraction
 from typing import Any
 
 from posttrain.verifiers.envs.base import Environment, Episode, Limits
@@ -135,15 +136,33 @@ class WordCalcEnv(Environment):
     verifier's verdict on that answer ("the answer is", "####", else the last number: the form an instruct model
     already writes). Hacks that score 0 (`WORD_AUDIT`, tested): copying a tool message (an error, a call) into the
     answer, ending on a call, several final answers ("the answer is 12 or 1743"), an empty answer.
+
+    `partial_credit` (an env option, default 0; ToolRL, arXiv 2504.13958, found partial credit on the call better
+    than exact match at 1.5B): an episode that ends with a wrong answer turn scores `partial_credit` times the mean
+    of three parts of its calculator calls (`credit_parts`), always below 1, so accuracy (the share of rewards of 1)
+    stays exact. Each part is written against its obvious hack (`PARTIAL_AUDIT`, tested):
+    - `call`: some call ran (no error) on an expression holding one of the problem's numbers. Hack: any valid call
+      ("1+1") earns it; it needs a number of the problem.
+    - `numbers`: the problem's numbers its valid calls use, over the problem's count plus every number they make
+      up (neither in the problem, nor a result of an earlier call, nor a problem number used more often than the
+      problem has it). Hack: padding an expression with numbers of its own ("1068+806-131+5") lowers it;
+      writing every number of the problem with the wrong operations earns it, and no `value` part.
+    - `value`: the share of valid calls whose result is a running total of the problem (an intermediate or the
+      answer: `meta.ops` where the row has them, else the answer alone). Hack: fishing with many calls over the
+      problem's numbers: every call that misses lowers the share, and every reuse of a number lowers `numbers`.
+    A copied tool message, a turn limit hit and no calls at all score 0, as without partial credit.
     """
 
     name = "calc-words"
     description = "word problems with 3-5 digit numbers, an exact calculator (python=true: also Python)"
     instructions = "Use the calculator for every computation. End your answer with: The answer is <number>."
 
-    def __init__(self, python: bool = False, **limits: Any):
+    def __init__(self, python: bool = False, partial_credit: float = 0.0, **limits: Any):
         from posttrain.verifiers.math_answer import MathVerifier
 
+        if not isinstance(partial_credit, (int, float)) or not 0.0 <= partial_credit < 1.0:
+            raise ValueError(f"calc-words partial_credit must be in [0, 1), got {partial_credit!r}")
+        self.partial_credit = float(partial_credit)
         self.limits = Limits(**{"max_turns": 5, "max_turn_tokens": 96, "max_total_tokens": 512, **limits})
         self.tools = (calculator, tools.PythonTool().as_tool()) if python else (calculator,)
         self._math = MathVerifier()
@@ -156,7 +175,81 @@ class WordCalcEnv(Environment):
         verdict = self._math.check(answer, str(problem["answer"]))
         return float(verdict.score), verdict.reason
 
-    reward = CalcEnv.reward  # the same rule-recording reward over this class's `score`
+    def reward(self, episode: Episode) -> float:
+        reward, why = self.score(episode.problem, episode.final_text, episode.finish)
+        if self.partial_credit and reward < 1.0 and why not in ("no answer turn", "copies a tool message"):
+            parts = credit_parts(episode.problem, episode.tool_results())
+            episode.state["reward_parts"] = parts
+            share = sum(parts.values()) / len(parts)
+            if share > 0:
+                reward, why = self.partial_credit * share, "wrong (partial credit)"
+        episode.state["reward_rule"] = why
+        return reward
+
+
+NUMBER = re.compile(r"\d+(?:\.\d+)?")
+
+
+def _value(text: str) -> Fraction | None:
+    """A calculator result ("1743", "2.5", "7/3 (≈ 2.33333333333)") or a number as an exact fraction; None if neither."""
+    try:
+        return Fraction(str(text).split(" (", 1)[0].replace(",", "").strip())
+    except (ValueError, ZeroDivisionError):
+        return None
+
+
+def running_totals(problem: dict[str, Any]) -> set[Fraction]:
+    """The right values of a problem: the running totals of its `meta.ops` (word-math's [[op, n], ...]) after each
+    operation, the answer among them; without ops, the answer alone."""
+    answer = _value(problem.get("answer", ""))
+    out = {answer} if answer is not None else set()
+    meta = problem.get("meta") if isinstance(problem.get("meta"), dict) else {}
+    total = None
+    for op, n in meta.get("ops") or []:
+        n = Fraction(n)
+        if op == "=" or total is None:
+            total = n
+        elif op == "+":
+            total += n
+        elif op == "-":
+            total -= n
+        elif op == "*":
+            total *= n
+        elif op == "/" and n:
+            total /= n
+        else:
+            return out
+        out.add(total)
+    return out
+
+
+def credit_parts(problem: dict[str, Any], results: list) -> dict[str, float]:
+    """The three partial-credit parts of an episode's calculator calls (`WordCalcEnv`'s docstring): call, numbers,
+    value, each in [0, 1]. `results` are the episode's `ToolResult`s in order."""
+    given = [_value(n) for n in INTEGER.findall(str(problem.get("prompt", "")))]
+    given = [g for g in given if g is not None]
+    right = running_totals(problem)
+    valid = [r for r in results if r.error is None and r.call.name == "calculator"
+             and isinstance((r.call.arguments or {}).get("expression"), str)]
+    used: list[Fraction] = []  # the problem's numbers the calls use (each at most as often as the problem has it)
+    made_up = hits = 0
+    earlier: set[Fraction] = set()  # results of earlier valid calls: a chained call may use them
+    any_given = False
+    for r in valid:
+        numbers = [Fraction(n) for n in NUMBER.findall(r.call.arguments["expression"])]
+        any_given = any_given or any(n in given for n in numbers)
+        for n in numbers:
+            if n in given and used.count(n) < given.count(n):
+                used.append(n)
+            elif n not in earlier:  # not the problem's (or used more often than it has it), not a result
+                made_up += 1
+        result = _value(r.content)
+        hits += result is not None and result in right
+        if result is not None:
+            earlier.add(result)
+    if not valid or not any_given:
+        return {"call": 0.0, "numbers": 0.0, "value": 0.0}
+    return {"call": 1.0, "numbers": len(used) / (len(given) + made_up) if given else 0.0, "value": hits / len(valid)}
 
 
 # (answer text, episode finish, expected reward) for a word problem whose answer is 1743: hacks score 0.
@@ -172,4 +265,26 @@ WORD_AUDIT = [
     ("", "answer", 0.0),
     ("The answer is 1744.", "answer", 0.0),
     ("The answer is 1743.", "length", 0.0),
+]
+
+# (case, the calculator expressions the episode's calls carry in order, answer text, finish, expected reward) for the
+# word problem 1068 + 806 - 131 = 1743 (`WORD_PROBLEM`) with partial_credit 0.6: each hack earns less than the honest
+# episode it imitates, and only a right answer earns 1.
+WORD_PROBLEM = {"prompt": "Nora collected 1068 pencils. A friend gives her 806 more pencils. She gives away 131 pencils. "
+                          "How many pencils does Nora have at the end?", "answer": "1743",
+                "meta": {"ops": [["=", 1068], ["+", 806], ["-", 131]]}}
+PARTIAL_AUDIT = [
+    ("right call, right answer", ["1068+806-131"], "The answer is 1743.", "answer", 1.0),
+    ("right call, its result ignored", ["1068+806-131"], "The answer is 1744.", "answer", 0.6),
+    ("two chained calls, result ignored", ["1068+806", "1874-131"], "The answer is 1744.", "answer", 0.6),
+    ("every number, a wrong sign", ["1068+806+131"], "The answer is 2005.", "answer", 0.4),
+    ("a step dropped (an intermediate)", ["1068+806"], "The answer is 1874.", "answer", 0.6 * (1 + 2 / 3 + 1) / 3),
+    ("hack: a call without the problem's numbers", ["1+1"], "The answer is 2.", "answer", 0.0),
+    ("hack: padding with a number of its own", ["1068+806-131+5"], "The answer is 1748.", "answer", 0.6 * 1.75 / 3),
+    ("hack: fishing over the numbers", ["1068+806", "1068-806", "1068*806", "806+131", "1068+131"],
+     "The answer is 1199.", "answer", 0.6 * (1 + 3 / 10 + 1 / 5) / 3),
+    ("hack: only refused calls", ["1068 plus 806"], "The answer is 1874.", "answer", 0.0),
+    ("no call, wrong answer", [], "The answer is 1744.", "answer", 0.0),
+    ("hack: a tool message copied", ["1068+806-131"], "error: unexpected ')'. The answer is 1744.", "answer", 0.0),
+    ("hack: ends on a call (a limit hit)", ["1068+806-131"], "", "max_turns", 0.0),
 ]
