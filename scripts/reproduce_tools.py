@@ -15,7 +15,9 @@ Pipeline, through the public CLI and API only (each stage a `python -m posttrain
      without tools. From the samples: pass@K (verifier-oracle best-of-K, Chen et al. 2021's unbiased estimator)
      and maj@K (majority vote over the verifier's extracted answers) at K in {1, 4, 16}. The prompted instruct
      model is evaluated greedy only (its episodes run to the turn limits: 16 samples of each would cost more than
-     the rest of the evaluation).
+     the rest of the evaluation). The SFT and GRPO models are also scored greedy on a second held-out set, word
+     problems in phrasings of our own (`--own`, default data/word-calc-own.jsonl: written apart from the
+     generator's templates, never trained or tuned on): does the accuracy hold on problems the generator did not write?
   5. Behaviour of every tool model's episodes and of the saved training episodes over GRPO steps: tool-call rate,
      valid-call rate, calls per problem, recovery after a tool error, answers that ignore the last tool result, and
      why each wrong greedy answer is wrong (no call, no valid call, a wrong expression computed exactly, the right
@@ -30,7 +32,7 @@ CPU:  posttrain models fetch smollm2-135m-instruct models/smollm2-135m-instruct 
 Options: --out DIR (default runs/tools[-quick]), --threads N (torch threads per stage and here; 0 = torch's default),
          --eval-rows N, --fresh (redo everything; by default finished stages in --out are reused), --set
          stage.key=value overrides for the smol-tools stages (e.g. --set grpo.lr=5e-5; the no-tool arm takes the
-         GRPO budget keys max_steps, prompts_per_step and group_size from them).
+         GRPO budget keys max_steps, prompts_per_step and group_size from them), --own FILE ('' skips it).
 """
 from __future__ import annotations
 
@@ -51,6 +53,7 @@ from reproduce_e7 import (KS, MODES, answer_key, evaluate_model, k_metrics, pct,
 from stage_runner import prepare, run_stage  # noqa: E402  (scripts/, this file's folder)
 
 TOOLS, NO_TOOLS = "smol-tools", "smol-math"
+OWN = ROOT / "data" / "word-calc-own.jsonl"  # held-out word problems in phrasings of our own (data/README.md)
 DIFFICULTY = 4  # word-math level 4, the smol-tools problems (the no-tool arm is set to it)
 BUDGET_KEYS = ("max_steps", "prompts_per_step", "group_size")  # the GRPO budget both arms share
 QUICK = ("sft.max_steps=12", "sft.final_eval_rows=8", "grpo.max_steps=2", "grpo.eval_every=1", "grpo.eval_rows=8",
@@ -322,17 +325,27 @@ def report_md(res: dict) -> str:
              f"GRPO budget of both arms: {res['budget']}. Generation: rollout.dtype={res['rollout_dtype']}; "
              f"training: run.mixed_precision={res['mixed_precision']}.\n")
     L.append("## Held-out accuracy\n")
-    L.append("| model | greedy | pass@4 | pass@16 | maj@4 | maj@16 | called a tool | valid calls | calls / problem |")
-    L.append("|---|---|---|---|---|---|---|---|---|")
+    L.append(f"| model | greedy | one sample (T={res['temperature']:g}) | pass@4 | pass@16 | maj@4 | maj@16 | called a "
+             "tool | valid calls | calls / problem |")
+    L.append("|---|---|---|---|---|---|---|---|---|---|")
     for k, label in LABELS.items():
         e = ev.get(k)
         if not e:
             continue
         b = e.get("behaviour_greedy", {})
         pk, mk = e.get("pass_at_k", {}), e.get("maj_at_k", {})
-        L.append(f"| {label} | **{pct(e['greedy_accuracy'])}** | {pct(pk.get(4))} | {pct(pk.get(16))} | "
-                 f"{pct(mk.get(4))} | {pct(mk.get(16))} | {pct(b.get('called_a_tool'))} | "
+        L.append(f"| {label} | **{pct(e['greedy_accuracy'])}** | {pct(pk.get(1))} | {pct(pk.get(4))} | "
+                 f"{pct(pk.get(16))} | {pct(mk.get(4))} | {pct(mk.get(16))} | {pct(b.get('called_a_tool'))} | "
                  f"{pct(b.get('valid_call_rate'))} | {_f(b.get('calls_per_episode'))} |")
+    own = [k for k in ("sft", "grpo") if f"{k}_own" in ev]
+    if own:
+        L.append(f"\nOn {res['own']['rows']} word problems in phrasings of our own (`{res['own']['file']}`, written "
+                 "apart from the generator's templates, never trained or tuned on), greedy:\n")
+        L.append("| model | generator's held-out | phrasings of our own | difference |")
+        L.append("|---|---|---|---|")
+        for k in own:
+            a, b = ev[k]["greedy_accuracy"], ev[f"{k}_own"]["greedy_accuracy"]
+            L.append(f"| {LABELS[k]} | {pct(a)} | **{pct(b)}** | {100 * (b - a):+.1f} points |")
     v = res["verdict"]
     L.append("")
     L.append(f"**Target** (GRPO with tools at least 10 points above the start model and above GRPO without tools): "
@@ -429,6 +442,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.KEY=VALUE",
                     help="override for the smol-tools stages, e.g. grpo.lr=5e-5 (repeatable)")
     ap.add_argument("--fresh", action="store_true", help="redo every stage even when it exists in --out")
+    ap.add_argument("--own", default=str(OWN), help="a second held-out set (JSONL: prompt, answer) the SFT and GRPO "
+                    "models are scored on greedy; default: the word problems in phrasings of our own; '' skips it")
     args = ap.parse_args(argv)
     out = prepare(args, "reproduce_tools", ROOT / "runs" / ("tools" + ("-quick" if args.quick else "")))
     from dataclasses import asdict
@@ -489,6 +504,12 @@ def main(argv: list[str] | None = None) -> int:
         if p["prompt"] != r["prompt"] or str(p["answer"]) != str(r["answer"]):
             raise SystemExit(f"reproduce_tools: the held-out problems of {TOOLS} and {NO_TOOLS} differ: "
                              f"{p['prompt']!r} vs {r['prompt']!r}")
+    own = []
+    if args.own:
+        own_path = Path(args.own)
+        if not own_path.is_file():
+            raise SystemExit(f"reproduce_tools: --own {args.own!r} is not a file")
+        own = [env_problem(json.loads(line)) for line in own_path.read_text().splitlines() if line.strip()]
     env = get_env(gcfg.env, **gcfg.env_options)
     T = gcfg.temperature
     ev: dict = {}
@@ -509,10 +530,16 @@ def main(argv: list[str] | None = None) -> int:
         ev[name] = evaluate_episodes(model_dir, problems, env, n, T)
         say(f"{LABELS[name]}: greedy {ev[name]['greedy_accuracy']:.3f}, pass@K {ev[name].get('pass_at_k')}, "
             f"maj@K {ev[name].get('maj_at_k')} ({time.time() - t0:.0f}s)")
+        if own and name != "instruct_tools":
+            t0 = time.time()
+            ev[f"{name}_own"] = evaluate_episodes(model_dir, own, env, 0, T)
+            say(f"{LABELS[name]}, {len(own)} problems in phrasings of our own: greedy "
+                f"{ev[f'{name}_own']['greedy_accuracy']:.3f} ({time.time() - t0:.0f}s)")
     t_eval = time.time() - t_eval
 
     check = MathVerifier().check
     res = {"quick": args.quick, "overrides": args.overrides, "threads": args.threads, "eval_rows": n_rows,
+           "own": {"file": args.own, "rows": len(own)},
            "samples": samples, "temperature": T, "budget": ", ".join(b.removeprefix("grpo.") for b in budget),
            "rollout_dtype": res_t.rollout.dtype, "mixed_precision": res_t.run.mixed_precision, "reused": reused,
            "seconds": {**{k: seconds[k] for k in ("sft", "grpo", "grpo_no_tools")}, "eval": t_eval}, "eval": ev,

@@ -480,7 +480,8 @@ def test_tools_report_and_plots(tmp_path):
     tools = _load(SCRIPTS / "reproduce_tools.py")
     ev = {"instruct": _fake_tools_eval(0.0, False), "instruct_tools": _fake_tools_eval(0.0, True, samples=False),
           "sft": _fake_tools_eval(0.6, True), "grpo": _fake_tools_eval(0.65, True),
-          "grpo_no_tools": _fake_tools_eval(0.1, False)}
+          "grpo_no_tools": _fake_tools_eval(0.1, False), "sft_own": _fake_tools_eval(0.4, True, samples=False),
+          "grpo_own": _fake_tools_eval(0.5, True, samples=False)}
     steps = [1, 2, 3, 4]
     env = {k: [1.0] * 4 for k in ("env/tool_calls", "env/valid_calls", "env/called_a_tool", "env/sampled_tokens",
                                   "env/env_tokens", "env/tool_seconds")}
@@ -489,6 +490,7 @@ def test_tools_report_and_plots(tmp_path):
            "completion_length": [30.0] * 4, "saved_behaviour": [dict(ev["sft"]["behaviour_greedy"], step=2, reward=0.5)]}
     plain = dict(run, env={k: [None] * 4 for k in env}, saved_behaviour=[])
     res = {"quick": False, "overrides": [], "threads": 2, "eval_rows": 100, "samples": 16, "temperature": 0.7,
+           "own": {"file": "data/word-calc-own.jsonl", "rows": 60},
            "budget": "max_steps=4, prompts_per_step=16, group_size=8", "rollout_dtype": "auto",
            "mixed_precision": "auto", "reused": ["sft"], "seconds": {"sft": 400.0, "grpo": 900.0, "grpo_no_tools": 300.0,
                                                                       "eval": 600.0},
@@ -505,6 +507,9 @@ def test_tools_report_and_plots(tmp_path):
     assert res["verdict"]["met"] and "**met**" in text and "+5.0 points greedy" in text
     for heading in ("## Held-out accuracy", "## Why the wrong greedy answers are wrong", "## Behaviour", "## Compute"):
         assert heading in text
-    assert "| instruct, tool prompted | **0.0%** | n/a |" in text
+    assert "| instruct, tool prompted | **0.0%** | n/a | n/a |" in text
+    assert "| SFT + GRPO with the tool | **65.0%** | 65.0% | 75.0% | 85.0% |" in text  # one sample at T: pass@1
+    assert "On 60 word problems in phrasings of our own" in text
+    assert "| SFT + GRPO with the tool | 65.0% | **50.0%** | -15.0 points |" in text
     ev["grpo_no_tools"]["greedy_accuracy"] = 0.6
     assert not tools.verdict(ev)["met"]

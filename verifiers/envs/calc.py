@@ -154,7 +154,8 @@ class WordCalcEnv(Environment):
     """
 
     name = "calc-words"
-    description = "word problems with 3-5 digit numbers, an exact calculator (python=true: also Python)"
+    description = ("word problems with 3-5 digit numbers, an exact calculator (python=true: also Python; "
+                   "partial_credit=W: part credit for the calls)")
     instructions = "Use the calculator for every computation. End your answer with: The answer is <number>."
 
     def __init__(self, python: bool = False, partial_credit: float = 0.0, **limits: Any):
