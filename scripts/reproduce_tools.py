@@ -228,7 +228,8 @@ def grpo_run(run_dir: Path, check=None) -> dict:
            "env": {k: [r.get(k) for r in train] for k in ("env/tool_calls", "env/valid_calls", "env/called_a_tool",
                                                            "env/sampled_tokens", "env/env_tokens",
                                                            "env/tool_seconds")},
-           "completion_length": [r.get("completion/length") for r in train]}
+           "completion_length": [r.get("completion/length") for r in train],
+           "entropy": [r.get("entropy") for r in train], "zero_var_frac": [r.get("zero_var_frac") for r in train]}
     if check is not None:
         from posttrain.rollout import load_rollouts
 
@@ -371,6 +372,10 @@ def report_md(res: dict) -> str:
                      f"{pct(b['episodes_with_a_tool_error'])} | {pct(b['recovered_after_error'])} | "
                      f"{pct(b['ignores_last_result'])} | {b['sampled_tokens']:.1f} | {b['env_tokens']:.1f} | "
                      f"{b['tool_seconds']:.4f} |")
+    for k, label in (("grpo", "GRPO with tools"), ("grpo_no_tools", "GRPO without tools")):
+        spread = _over_training(res[k])
+        if spread:
+            L.append(f"\n{label} over training: {spread}.")
     saved = res["grpo"].get("saved_behaviour", [])
     if saved:
         L.append("\nTraining episodes over GRPO steps (saved every few steps):\n")
@@ -401,6 +406,19 @@ def report_md(res: dict) -> str:
     L.append("\n![accuracy](tools_accuracy.png)\n![best-of-K](tools_best_of_k.png)"
              + ("\n![training](tools_training.png)" if "tools_training.png" in res["figures"] else "") + "\n")
     return "\n".join(L) + "\n"
+
+
+def _over_training(run: dict) -> str:
+    """Entropy of the sampled tokens and the share of groups with one reward for all (which train nothing), first
+    step / mean / last step; empty when the run logged neither."""
+    parts = []
+    for key, label, spec in (("entropy", "entropy (nats per sampled token)", ".3f"),
+                             ("zero_var_frac", "groups with no reward variance", ".0%")):
+        vals = [v for v in run.get(key, []) if v is not None]
+        if vals:
+            parts.append(f"{label} {format(vals[0], spec)} / {format(sum(vals) / len(vals), spec)} / "
+                         f"{format(vals[-1], spec)} (first step / mean / last)")
+    return "; ".join(parts)
 
 
 def verdict(ev: dict) -> dict:

@@ -487,7 +487,8 @@ def test_tools_report_and_plots(tmp_path):
                                   "env/env_tokens", "env/tool_seconds")}
     run = {"steps": steps, "reward": [0.5] * 4, "step_seconds": [10.0] * 4, "eval_steps": [0, 2, 4],
            "eval_accuracy": [0.6, 0.62, 0.65], "config": {"prompts_per_step": 16, "group_size": 8}, "env": env,
-           "completion_length": [30.0] * 4, "saved_behaviour": [dict(ev["sft"]["behaviour_greedy"], step=2, reward=0.5)]}
+           "completion_length": [30.0] * 4, "saved_behaviour": [dict(ev["sft"]["behaviour_greedy"], step=2, reward=0.5)],
+           "entropy": [0.02, 0.04, 0.06, 0.08], "zero_var_frac": [0.5, 0.25, 0.25, 0.0]}
     plain = dict(run, env={k: [None] * 4 for k in env}, saved_behaviour=[])
     res = {"quick": False, "overrides": [], "threads": 2, "eval_rows": 100, "samples": 16, "temperature": 0.7,
            "own": {"file": "data/word-calc-own.jsonl", "rows": 60},
@@ -510,6 +511,8 @@ def test_tools_report_and_plots(tmp_path):
     assert "| instruct, tool prompted | **0.0%** | n/a | n/a |" in text
     assert "| SFT + GRPO with the tool | **65.0%** | 65.0% | 75.0% | 85.0% |" in text  # one sample at T: pass@1
     assert "On 60 word problems in phrasings of our own" in text
+    assert ("GRPO with tools over training: entropy (nats per sampled token) 0.020 / 0.050 / 0.080 (first step / mean "
+            "/ last); groups with no reward variance 50% / 25% / 0% (first step / mean / last).") in text
     assert "| SFT + GRPO with the tool | 65.0% | **50.0%** | -15.0 points |" in text
     ev["grpo_no_tools"]["greedy_accuracy"] = 0.6
     assert not tools.verdict(ev)["met"]
