@@ -94,6 +94,8 @@ def test_bad_environment_settings_are_one_line_errors(chat_sft, tmp_path, capsys
     assert "rewards whole episodes itself" in capsys.readouterr().err
     assert main(_args(chat_sft, tmp_path / "c", "env=calc", "env_options={max_turns: 0}")) == 2
     assert "Limits.max_turns must be a positive integer" in capsys.readouterr().err
+    assert main(_args(chat_sft, tmp_path / "d", "env=calc-words", "env_options={partial_credit: 1.5}")) == 2
+    assert "grpo.env: calc-words partial_credit must be in [0, 1), got 1.5" in capsys.readouterr().err
 
 
 def test_posttrain_envs_lists_the_built_ins(capsys):
