@@ -4,7 +4,7 @@ Run it before every stop that changes a trainer, a loss, the rollout engine, a p
 (quick), and before calling such an issue resolved (full). It is a script, not a test: it trains, takes minutes, and
 its bands are spreads over seeds measured on real CPUs, never timed assertions.
 
-CPU:  python scripts/learning_check.py                quick tier: tiny-math from nothing (a shortened SFT, then 20
+CPU:  python scripts/learning_check.py                quick tier: tiny-math from nothing (1500 SFT steps, then 40
                                                       GRPO steps), two seeds side by side
       python scripts/learning_check.py --full         adds tiny-calc (its recipe's SFT, then 30 multi-turn GRPO steps
                                                       with the calculator) and smol-math (the recipe's 40 LoRA GRPO
