@@ -177,8 +177,9 @@ def figures_of(run_dir: Path, recipe: str) -> dict[str, float]:
     return {"sft": sft, "grpo": grpo, "gain": grpo - sft}
 
 
-def run_one(run: Run, seed: int, out: Path, model: str, precision: str, env: dict[str, str]) -> dict:
-    run_dir = out / f"{run.name}-s{seed}"
+def run_one(run: Run, seed: int, out: Path, model: str, precision: str, env: dict[str, str],
+            tag: bool = False) -> dict:
+    run_dir = out / (f"{run.name}-s{seed}" + (f"-{precision}" if tag else ""))
     if run_dir.exists():
         shutil.rmtree(run_dir)
     run_dir.mkdir(parents=True)
@@ -219,8 +220,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default="", help="seeds of every run (0-4, 0,2); default: each run's own")
     ap.add_argument("--only", default="", help="run only these runs (comma-separated names)")
     ap.add_argument("--jobs", type=int, default=2, help="runs in parallel, one torch thread each (default 2)")
-    ap.add_argument("--precision", choices=tuple(PRECISIONS), default="recipe",
-                    help="recipe (default: each recipe's own settings), or fp32 / bf16 for training and rollouts")
+    ap.add_argument("--precision", default="recipe",
+                    help="recipe (default: each recipe's own settings), or fp32 / bf16 for training and rollouts; "
+                         "fp32,bf16 runs each seed in both, one right after the other")
     ap.add_argument("--model", default="models/smollm2-135m-instruct")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "learning-check")
     ap.add_argument("--results", type=Path, default=ROOT / "RESULTS.md")
@@ -239,18 +241,25 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"learning_check: the real model is not at {args.model}; run `posttrain models fetch "
                          f"smollm2-135m-instruct {args.model}` first, or give --model DIR")
     seeds = parse_seeds(args.seeds) if args.seeds else None
+    choices = list(dict.fromkeys(p.strip() for p in args.precision.split(",") if p.strip()))
+    if not choices or set(choices) - set(PRECISIONS):
+        raise SystemExit(f"learning_check: --precision {args.precision!r}: choose from {', '.join(PRECISIONS)} "
+                         "(or several, comma-separated)")
     bands = read_bands(args.results)
-    precision = {r.name: r.precision(args.precision) for r in runs}
+    precision = {(r.name, c): r.precision(c) for r in runs for c in choices}
     env = dict(os.environ, OMP_NUM_THREADS="1")
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(r, s) for r in runs for s in (seeds or r.seeds)]
-    print(f"[learning-check] {len(jobs)} run(s): {', '.join(f'{r.name} seed {s} ({precision[r.name]})' for r, s in jobs)}"
+    # each seed in every precision asked for, one right after the other (side by side with --jobs 2)
+    jobs = [(r, s, c) for r in runs for s in (seeds or r.seeds) for c in choices]
+    print(f"[learning-check] {len(jobs)} run(s): "
+          f"{', '.join(f'{r.name} seed {s} ({precision[r.name, c]})' for r, s, c in jobs)}"
           f"; {args.jobs} at a time, one thread each; logs under {out}", flush=True)
     t0 = time.time()
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        results = list(pool.map(lambda job: {**run_one(job[0], job[1], out, args.model, args.precision, env),
-                                             "precision": precision[job[0].name]}, jobs))
+        results = list(pool.map(lambda job: {**run_one(job[0], job[1], out, args.model, job[2], env,
+                                                       tag=len(choices) > 1),
+                                             "precision": precision[job[0].name, job[2]]}, jobs))
     wall = time.time() - t0
 
     failed = worst = checked = 0
@@ -278,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
           f"failed; {wall / 60:.1f} min in all", flush=True)
     if args.record:
         print("\n".join(band_rows(results)))
-    summary = {"precision": args.precision, "wall_s": round(wall, 1), "status": status, "results": results}
+    summary = {"precision": ",".join(choices), "wall_s": round(wall, 1), "status": status, "results": results}
     (args.json or out / "results.json").write_text(json.dumps(summary, indent=1) + "\n")
     return status
 

@@ -96,7 +96,8 @@ def test_precisions_the_runs_compute_in(tmp_path):
 
 def test_bad_options_are_one_line_errors(tmp_path):
     for args, msg in ((["--only", "nope"], "unknown run(s) nope"), (["--jobs", "0"], "--jobs must be at least 1"),
-                      (["--only", "smol-math", "--model", str(tmp_path)], "the real model is not at")):
+                      (["--only", "smol-math", "--model", str(tmp_path)], "the real model is not at"),
+                      (["--precision", "fp32,fp16"], "--precision 'fp32,fp16': choose from recipe, fp32, bf16")):
         out = subprocess.run([sys.executable, str(ROOT / "scripts" / "learning_check.py"), *args,
                               "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
         assert out.returncode != 0 and msg in out.stderr, out.stderr
