@@ -20,7 +20,8 @@ its own under --out; its figures are read from the stage's eval.json: the SFT mo
 greedy accuracy on the same problems, and their difference. Each figure is compared with its band for the precision
 the run computes in: the tiny recipes train and sample in fp32 on every machine; smol-math's `auto` settings give
 bf16 where it is native and faster, fp32 elsewhere (`--precision fp32|bf16` sets both the training autocast and the
-rollout weights for every run instead). Below the band's lowest seed is FAIL, above its highest is "above" (a pass
+rollout weights for every run instead; `--precision fp32,bf16` runs each seed in both, one right after the other,
+in run directories NAME-sSEED-PRECISION). Below the band's lowest seed is FAIL, above its highest is "above" (a pass
 worth a look), no band recorded for that precision is "no band". A band wider than 5 points cannot
 catch a 5-point drop: the check says so next to it. The bands live in RESULTS.md between the markers
 `<!-- learning-check-bands -->` and `<!-- /learning-check-bands -->`, one row per (run, figure, precision):
@@ -97,9 +98,12 @@ class Run:
 
 
 # --precision: the recipes' own settings, or both the training autocast and the rollout weights set to one precision
-# (bf16 runs anywhere; where it is not native it is emulated and slower, with bf16's rounding all the same).
+# (bf16 runs anywhere; where it is not native it is emulated and slower, with bf16's rounding all the same), or one
+# of the two in bf16 and the other in fp32: which half of bf16 costs learning, where it does.
 PRECISIONS = {"recipe": (), "fp32": ("run.mixed_precision=no", "rollout.dtype=float32"),
-              "bf16": ("run.mixed_precision=bf16", "rollout.dtype=bfloat16")}
+              "bf16": ("run.mixed_precision=bf16", "rollout.dtype=bfloat16"),
+              "bf16-train": ("run.mixed_precision=bf16", "rollout.dtype=float32"),
+              "bf16-rollout": ("run.mixed_precision=no", "rollout.dtype=bfloat16")}
 
 
 # The runs. Their sizes are chosen so that a run learns something visible in a few minutes of one core, and changing
@@ -221,8 +225,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default="", help="run only these runs (comma-separated names)")
     ap.add_argument("--jobs", type=int, default=2, help="runs in parallel, one torch thread each (default 2)")
     ap.add_argument("--precision", default="recipe",
-                    help="recipe (default: each recipe's own settings), or fp32 / bf16 for training and rollouts; "
-                         "fp32,bf16 runs each seed in both, one right after the other")
+                    help="recipe (default: each recipe's own settings), fp32 / bf16 for training and rollouts, "
+                         "bf16-train / bf16-rollout for one of them; fp32,bf16 runs each seed in both, one right "
+                         "after the other")
     ap.add_argument("--model", default="models/smollm2-135m-instruct")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "learning-check")
     ap.add_argument("--results", type=Path, default=ROOT / "RESULTS.md")

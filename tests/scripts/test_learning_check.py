@@ -79,7 +79,7 @@ def test_seeds_and_band_rows():
     assert rows[5] == "| r | gain | bf16 | 0 | 0.500 | 0.500-0.500 |"
 
 
-def test_precisions_the_runs_compute_in(tmp_path):
+def test_precisions_the_runs_compute_in(tmp_path, monkeypatch):
     from posttrain.cli import validate
 
     tiny = next(r for r in LC.RUNS if r.name == "tiny-math")
@@ -88,16 +88,22 @@ def test_precisions_the_runs_compute_in(tmp_path):
     cmd = tiny.command(0, tmp_path, "m", "bf16")
     grpo = next(res for res in validate(tiny.recipe, cmd[6:]) if res.stage == "grpo")
     assert (grpo.run.mixed_precision, grpo.rollout.dtype) == ("bf16", "bfloat16")
+    for half, settings in (("bf16-train", ("bf16", "float32")), ("bf16-rollout", ("no", "bfloat16"))):
+        cmd = tiny.command(0, tmp_path, "m", half)
+        grpo = next(res for res in validate(tiny.recipe, cmd[6:]) if res.stage == "grpo")
+        assert (grpo.run.mixed_precision, grpo.rollout.dtype) == settings, half
     smol = next(r for r in LC.RUNS if r.name == "smol-math")
-    from posttrain import runtime
-
-    assert smol.precision("recipe") == ("bf16" if runtime.native_bf16() else "fp32")  # the recipe's auto
+    # the recipe's auto, decided as a run decides it; forced here, since the probe is a timing that a loaded
+    # machine can flip between two calls
+    for forced, want in (("1", "bf16"), ("0", "fp32")):
+        monkeypatch.setenv("POSTTRAIN_BF16", forced)
+        assert smol.precision("recipe") == want
 
 
 def test_bad_options_are_one_line_errors(tmp_path):
     for args, msg in ((["--only", "nope"], "unknown run(s) nope"), (["--jobs", "0"], "--jobs must be at least 1"),
                       (["--only", "smol-math", "--model", str(tmp_path)], "the real model is not at"),
-                      (["--precision", "fp32,fp16"], "--precision 'fp32,fp16': choose from recipe, fp32, bf16")):
+                      (["--precision", "fp32,fp16"], "--precision 'fp32,fp16': choose from recipe, fp32, bf16, bf16-train, bf16-rollout")):
         out = subprocess.run([sys.executable, str(ROOT / "scripts" / "learning_check.py"), *args,
                               "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
         assert out.returncode != 0 and msg in out.stderr, out.stderr
