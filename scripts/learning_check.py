@@ -33,6 +33,7 @@ catch a 5-point drop: the check says so next to it. The bands live in RESULTS.md
 Exit status: 0 when every figure with a band is in or above it, 1 when one is below, 2 when a run itself failed (its
 log's tail printed), 3 when no figure had a band for this precision (nothing was checked).
 Options: --out DIR (default runs/learning-check), --seeds (default: each run's own), --only NAME[,NAME], --jobs N,
+--set STAGE.KEY=VALUE (an experiment on every run: printed, never compared with the bands),
 --model DIR (the real model; default models/smollm2-135m-instruct), --results FILE (default RESULTS.md), --json FILE.
 """
 from __future__ import annotations
@@ -67,11 +68,13 @@ class Run:
     seeds: tuple[int, ...]
     real: bool = False  # needs the real model (--model)
 
-    def command(self, seed: int, out: Path, model: str, precision: str = "recipe") -> list[str]:
+    def command(self, seed: int, out: Path, model: str, precision: str = "recipe",
+                sets: tuple[str, ...] = ()) -> list[str]:
         keys = [f"{k}={seed}" for k in self.seed_keys]
         extra = [f"model.path={model}"] if self.real else []
         return [sys.executable, "-m", "posttrain", "grpo", "--recipe", self.recipe, "run.threads=1",
-                f"run.output_dir={out}", "run.quiet=true", *extra, *keys, *self.overrides, *PRECISIONS[precision]]
+                f"run.output_dir={out}", "run.quiet=true", *extra, *keys, *self.overrides, *PRECISIONS[precision],
+                *sets]
 
     def precision(self, choice: str) -> str:
         """fp32 or bf16: what this run computes in under `choice` (recipe: the recipe's own settings, `auto`
@@ -182,13 +185,13 @@ def figures_of(run_dir: Path, recipe: str) -> dict[str, float]:
 
 
 def run_one(run: Run, seed: int, out: Path, model: str, precision: str, env: dict[str, str],
-            tag: bool = False) -> dict:
+            tag: bool = False, sets: tuple[str, ...] = ()) -> dict:
     run_dir = out / (f"{run.name}-s{seed}" + (f"-{precision}" if tag else ""))
     if run_dir.exists():
         shutil.rmtree(run_dir)
     run_dir.mkdir(parents=True)
     log = run_dir / "log.txt"
-    cmd = run.command(seed, run_dir, model, precision)
+    cmd = run.command(seed, run_dir, model, precision, sets)
     t0 = time.time()
     with open(log, "w") as f:
         f.write("$ " + " ".join(cmd[1:]) + "\n")
@@ -228,6 +231,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="recipe (default: each recipe's own settings), fp32 / bf16 for training and rollouts, "
                          "bf16-train / bf16-rollout for one of them; fp32,bf16 runs each seed in both, one right "
                          "after the other")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.KEY=VALUE",
+                    help="an override for every run (an experiment: its figures are printed, never compared with "
+                         "the bands; repeatable)")
     ap.add_argument("--model", default="models/smollm2-135m-instruct")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "learning-check")
     ap.add_argument("--results", type=Path, default=ROOT / "RESULTS.md")
@@ -263,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.time()
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         results = list(pool.map(lambda job: {**run_one(job[0], job[1], out, args.model, job[2], env,
-                                                       tag=len(choices) > 1),
+                                                       tag=len(choices) > 1, sets=tuple(args.sets)),
                                              "precision": precision[job[0].name, job[2]]}, jobs))
     wall = time.time() - t0
 
@@ -275,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         parts = []
         for fig in FIGURES:
-            band = bands.get((r["run"], fig, r["precision"]))
+            band = None if args.sets else bands.get((r["run"], fig, r["precision"]))
             v = verdict(r[fig], band)
             worst += v == "FAIL"
             checked += band is not None
@@ -288,11 +294,13 @@ def main(argv: list[str] | None = None) -> int:
               + "; ".join(parts))
     status = 2 if failed else (1 if worst else (0 if checked else 3))
     word = {0: "PASS", 1: "FAIL", 2: "FAIL", 3: "UNCHECKED"}[status]
+    if args.sets:
+        print(f"[learning-check] with --set {' '.join(args.sets)}: an experiment, not compared with the bands")
     print(f"[learning-check] {word}: {checked} figure(s) compared with a band, {worst} below it, {failed} run(s) "
           f"failed; {wall / 60:.1f} min in all", flush=True)
     if args.record:
         print("\n".join(band_rows(results)))
-    summary = {"precision": ",".join(choices), "wall_s": round(wall, 1), "status": status, "results": results}
+    summary = {"precision": ",".join(choices), "set": args.sets, "wall_s": round(wall, 1), "status": status, "results": results}
     (args.json or out / "results.json").write_text(json.dumps(summary, indent=1) + "\n")
     return status
 

@@ -92,6 +92,10 @@ def test_precisions_the_runs_compute_in(tmp_path, monkeypatch):
         cmd = tiny.command(0, tmp_path, "m", half)
         grpo = next(res for res in validate(tiny.recipe, cmd[6:]) if res.stage == "grpo")
         assert (grpo.run.mixed_precision, grpo.rollout.dtype) == settings, half
+    cmd = tiny.command(0, tmp_path, "m", "bf16", ("grpo.old_logprobs=recompute",))
+    assert cmd[-1] == "grpo.old_logprobs=recompute"  # --set: after the run's own overrides, so it wins
+    grpo = next(res for res in validate(tiny.recipe, cmd[6:]) if res.stage == "grpo")
+    assert grpo.stage_cfg.old_logprobs == "recompute"
     smol = next(r for r in LC.RUNS if r.name == "smol-math")
     # the recipe's auto, decided as a run decides it; forced here, since the probe is a timing that a loaded
     # machine can flip between two calls
