@@ -150,7 +150,7 @@ class RolloutConfig:
     dtype: Literal["float32", "bfloat16", "auto"] = "float32"
     """Weights of the built-in engine's matmuls: float32, or bfloat16 (a bf16 copy of the policy, refreshed after every
     update: faster sampling where the CPU or GPU has native bf16; the sampler's log-probs then differ slightly from
-    the trainer's, logged as mismatch/kl), or auto (bfloat16 where bf16 is native, float32 elsewhere: emulated bf16
+    the trainer's, logged as mismatch/kl; GRPO's pi_old is then recomputed by the trainer), or auto (bfloat16 where bf16 is native, float32 elsewhere: emulated bf16
     is slower than fp32). The HF forward and vLLM (vllm_dtype) ignore it."""
     vllm_gpu_memory_utilization: float = 0.3
     """backend=vllm: fraction of the GPU's memory vLLM takes (weights + KV cache); the rest is left to training."""

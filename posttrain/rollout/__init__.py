@@ -70,8 +70,8 @@ Contract
 from ..lean.decode import LeanLlama
 from ..lean.support import lean_support
 from ..runtime import tune_malloc
-from .engine import (BACKENDS, DEFAULT_MAX_BATCH_TOKENS, configure, context_length, default_backend, generate,
-                     select_backend)
+from .engine import (BACKENDS, DEFAULT_MAX_BATCH_TOKENS, configure, context_length, default_backend, default_dtype,
+                     generate, select_backend)
 from .records import Rollout, RolloutBatch, collate_rollouts, load_rollouts, save_rollouts
 from .sampling import SamplingParams, row_uniforms
 
@@ -86,6 +86,7 @@ __all__ = [
     "configure",
     "context_length",
     "default_backend",
+    "default_dtype",
     "generate",
     "lean_support",
     "load_rollouts",

@@ -77,6 +77,11 @@ def default_backend() -> str:
     return _defaults["backend"]
 
 
+def default_dtype() -> str:
+    """The lean engine's weight dtype when `generate` is given none ("float32" or "bfloat16"; see `configure`)."""
+    return _defaults["dtype"]
+
+
 def context_length(model) -> int | None:
     cfg = getattr(unwrap_model(model), "config", None)
     n = getattr(cfg, "max_position_embeddings", None)

@@ -27,7 +27,12 @@ Implementation details it follows, each a config field:
     constant normaliser (aggregation seq_mean_token_sum_norm: token sums / (rows x max_new_tokens)).
 10. RLOO (Ahmadian et al. 2024) and REINFORCE++ (Hu et al. 2025) as other critic-free baselines (estimator).
 11. pi_old from the rollout engine (old_logprobs=rollout: no extra forward; TRL, verl), or recomputed by one
-    batched no-grad forward of the trainer (`loss_rows`).
+    batched no-grad forward of the trainer (`loss_rows`). The default, auto, recomputes wherever the sampler's
+    numerics are not the trainer's (bf16 rollout weights, bf16 autocast, half weights, vLLM; `sampler_is_trainer`)
+    and takes the engine's where they are (fp32: equal within 1e-6). With bf16 on both sides and the engine's pi_old,
+    smol-math's GRPO collapsed in 2 seeds of 3 (held-out 0.21 -> 0.015 and 0.255, against 0.625 and 0.58 in fp32):
+    the ratio pi_trainer / pi_sampler of the one update is not 1, and clipping it drops the gradient of 1-6% of the
+    tokens by their rounding, not their advantage (RESULTS.md, "Is E7 real's drift bf16?").
 12. The policy-loss family (policy_loss, `losses.policy_loss`; `grpo_loss`): PPO's clipped token ratio (clip);
     GSPO (Zheng et al. 2025): one clipped ratio per sequence, the geometric mean of its token ratios (gspo), and
     GSPO-token (gspo_token); CISPO (MiniMax-M1, 2025): the clipped importance weight, stop-gradient, times the
@@ -155,8 +160,9 @@ class GRPOConfig:
     """Optimizer updates per pass (the batch is split into this many minibatches)."""
     micro_batch_size: int = 0
     """Rows per forward pass at most (gradient accumulation); 0: no cap (`run.micro_batch_tokens` caps tokens)."""
-    old_logprobs: Literal["rollout", "recompute"] = "rollout"
-    """pi_old (detail 11): the engine's log-probs or a no-grad recompute (some settings recompute regardless)."""
+    old_logprobs: Literal["auto", "rollout", "recompute"] = "auto"
+    """pi_old (detail 11): the engine's log-probs, a no-grad recompute by the trainer (some settings recompute
+    regardless), or auto: recompute where the sampler's numerics are not the trainer's (bf16, vLLM)."""
     rollout_correction: Literal["none", "tis", "mask"] = "none"
     """Correct for a sampler that is not the trainer (detail 13): tis (weights min(w, cap)) or mask (IcePop)."""
     rollout_correction_level: Literal["token", "sequence"] = "token"
@@ -375,9 +381,10 @@ def setup(res: Resolved, cfg: GRPOConfig, ensure, stack: contextlib.ExitStack) -
     held_out = HeldOut(eval_problems, reward, cfg.max_new_tokens, min(cfg.eval_rows, len(eval_problems)),
                        min(cfg.final_eval_rows, len(eval_problems)),
                        start="base" if res.model.start_from == "base" else "SFT")
-    # pi_old recomputed: asked for, rollout correction (it weighs pi_old against the sampler), a truncated sampler
-    # (top-p) at temperature != 1, or vLLM rollouts
+    # pi_old recomputed: asked for, or auto where the sampler is not the trainer, rollout correction (it weighs
+    # pi_old against the sampler), a truncated sampler (top-p) at temperature != 1, or vLLM rollouts
     recompute_old = cfg.old_logprobs == "recompute" or cfg.rollout_correction != "none" \
+        or (cfg.old_logprobs == "auto" and not sampler_is_trainer(accelerator, model)) \
         or (cfg.temperature != 1.0 and cfg.top_p < 1.0) or default_backend() == "vllm"
     optimizer = loop.build_optimizer(model, cfg.lr, cfg.weight_decay)
     scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps * cfg.mu * cfg.minibatches,
@@ -530,6 +537,18 @@ def rollout_rounds(run: GRPORun, step: int) -> tuple[StepBatch, int, dict[str, f
 
 
 # ----------------------------------------------------------------------------- advantages and update
+def sampler_is_trainer(accelerator, model) -> bool:
+    """Whether the rollout engine computes the trainer's own log-probs (old_logprobs=auto takes them, detail 11):
+    fp32 weights sampled by the built-in engine in fp32, trained without autocast. bf16 rollout weights, bf16 /
+    fp16 autocast, half model weights or vLLM each give another distribution (mismatch/kl 0.002-0.01 on smol-math
+    in bf16, against ~4e-9 in fp32)."""
+    from posttrain.rollout import default_backend, default_dtype
+
+    weights = {p.dtype for p in model.parameters()}
+    return (default_backend() != "vllm" and default_dtype() == "float32" and accelerator.mixed_precision == "no"
+            and weights == {torch.float32})
+
+
 def loss_rows(cfg: GRPOConfig, step_batch: StepBatch, accelerator, pad_id: int, old_model, ref_model,
               budget: int = 0) -> dict[str, torch.Tensor] | None:
     """The rows of the loss: the kept groups' tokens, loss mask and group advantages, pi_old (the engine's, or

@@ -269,6 +269,28 @@ def test_mismatch_kl_is_the_gap_between_sampler_and_trainer(sft_model, tmp_path)
         assert all(s["mismatch/min_ratio"] < 1 < s["mismatch/max_ratio"] for s in got[bf16])
 
 
+def test_old_logprobs_auto_recomputes_where_the_sampler_is_not_the_trainer(sft_model, tmp_path):
+    """old_logprobs=auto (the default): the engine's log-probs as pi_old where it samples with the trainer's own
+    numerics (fp32), a recompute by the trainer where it does not (bf16 rollout weights, bf16 autocast), so the one
+    update's ratio starts at 1 whatever the sampler's rounding; old_logprobs=rollout keeps the sampler's, and its
+    ratio carries the gap (detail 11)."""
+    got = {}
+    for extra in ("rollout.dtype=float32", "rollout.dtype=bfloat16", "run.mixed_precision=bf16",
+                  "rollout.dtype=bfloat16 old_logprobs=rollout"):
+        out = tmp_path / extra.replace("=", "-").replace(" ", "_")
+        assert main(_args(sft_model, out, "max_steps=1", "zero_variance=keep", "temperature=0.7",
+                          "final_eval_rows=0", "eval_rows=0", _verifier("digits"), *extra.split())) == 0
+        got[extra] = _steps(out)[0]
+    for on_policy in ("rollout.dtype=float32", "rollout.dtype=bfloat16", "run.mixed_precision=bf16"):
+        assert got[on_policy]["ratio_max"] == pytest.approx(1.0, abs=1e-5), on_policy
+        assert got[on_policy]["clip_frac"] == 0.0, on_policy
+    assert "mismatch/kl" not in got["rollout.dtype=float32"] or got["rollout.dtype=float32"]["mismatch/kl"] < 1e-6
+    for gap in ("rollout.dtype=bfloat16", "run.mixed_precision=bf16"):  # measured against the recompute
+        assert got[gap]["mismatch/kl"] > 0, gap
+    sampler = got["rollout.dtype=bfloat16 old_logprobs=rollout"]
+    assert sampler["ratio_max"] > 1 + 1e-3 and sampler["mismatch/kl"] > 0
+
+
 def test_the_policy_losses_agree_on_policy_and_differ_off_policy(sft_model, tmp_path):
     """clip, gspo, gspo_token and cispo: one on-policy update (ratio 1) with the per-sequence token mean has the same
     loss and gradient for all four; with several passes the later updates are off-policy and each loss reports its
