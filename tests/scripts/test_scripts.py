@@ -514,5 +514,19 @@ def test_tools_report_and_plots(tmp_path):
     assert ("GRPO with tools over training: entropy (nats per sampled token) 0.020 / 0.050 / 0.080 (first step / mean "
             "/ last); groups with no reward variance 50% / 25% / 0% (first step / mean / last).") in text
     assert "| SFT + GRPO with the tool | 65.0% | **50.0%** | -15.0 points |" in text
-    ev["grpo_no_tools"]["greedy_accuracy"] = 0.6
+    assert not res["verdict"]["rl_met"] and ("**Target of RL over its SFT start** (issue 49; samples at T=0.7): "
+                                             "**not met**: greedy 60.0% -> 65.0% (+5.0 points; at least +10), pass@16 "
+                                             "80.0% -> 85.0% (+5.0 points; at most 3 down), phrasings of our own 40.0% "
+                                             "-> 50.0% (+10.0 points; at least +5).") in text
+    ev["grpo"] = _fake_tools_eval(0.75, True)  # +15 points greedy, pass@16 95%
+    assert tools.verdict(ev)["rl_met"]
+    ev["grpo"]["pass_at_k"][16] = 0.76  # pass@16 4 points below the SFT model's
+    assert not tools.verdict(ev)["rl_met"]
+    ev["grpo"]["pass_at_k"][16] = 0.77  # 3 points below: within
+    assert tools.verdict(ev)["rl_met"]
+    ev["grpo_own"]["greedy_accuracy"] = 0.44  # the gain does not hold on the own phrasings
+    assert not tools.verdict(ev)["rl_met"]
+    del ev["grpo_own"]
+    assert not tools.verdict(ev)["rl_met"] and "phrasings of our own not measured" in tools.verdict(ev)["rl_text"]
+    ev["grpo_no_tools"]["greedy_accuracy"] = 0.7
     assert not tools.verdict(ev)["met"]
