@@ -58,8 +58,8 @@ TOOLS, NO_TOOLS = "smol-tools", "smol-math"
 OWN = ROOT / "data" / "word-calc-own.jsonl"  # held-out word problems in phrasings of our own (data/README.md)
 DIFFICULTY = 4  # word-math level 4, the smol-tools problems (the no-tool arm is set to it)
 BUDGET_KEYS = ("max_steps", "prompts_per_step", "group_size")  # the GRPO budget both arms share
-# --quick: 30 SFT steps teach the call (held-out greedy 0.43, every episode a valid call: RESULTS.md, smol-tools
-# GRPO levers); 12 taught none.
+# --quick: 30 SFT steps teach the call (held-out greedy 0.43, every episode a valid call: RESULTS.md, "GRPO moves
+# smol-tools past its SFT start"); 12 taught none.
 QUICK = ("sft.max_steps=30", "sft.final_eval_rows=8", "grpo.max_steps=2", "grpo.eval_every=1", "grpo.eval_rows=8",
          "grpo.prompts_per_step=4")
 LABELS = {"instruct": "instruct, no tool", "instruct_tools": "instruct, tool prompted", "sft": "SFT with the tool",
@@ -449,20 +449,20 @@ def verdict(ev: dict) -> dict:
     k = max(KS)
     p16 = [(ev[m].get("pass_at_k") or {}).get(k) for m in ("sft", "grpo")]
     drop = None if None in p16 else p16[0] - p16[1]
-    own = ("sft_own" in ev and "grpo_own" in ev) or None
-    own_gain = own and ev["grpo_own"]["greedy_accuracy"] - ev["sft_own"]["greedy_accuracy"]
+    sft_own, grpo_own = (ev[m]["greedy_accuracy"] if m in ev else None for m in ("sft_own", "grpo_own"))
+    own_gain = None if sft_own is None or grpo_own is None else grpo_own - sft_own
     sampled = [ev[m].get("sample_accuracy") for m in ("sft", "grpo")]
     rl_met = (gain >= RL_GAIN - EPS and drop is not None and drop <= PASS_DROP + EPS and own_gain is not None
               and own_gain >= OWN_GAIN - EPS)
-    rl_text = (f"greedy {pct(ev['sft']['greedy_accuracy'])} -> {pct(g)} ({100 * gain:+.1f} points; at least "
-               f"{100 * RL_GAIN:+.0f}), pass@{k} " + ("not measured" if drop is None else
-                                                       f"{pct(p16[0])} -> {pct(p16[1])} ({-100 * drop:+.1f} points; "
-                                                       f"at most {100 * PASS_DROP:.0f} down)")
-               + ", phrasings of our own " + ("not measured" if own_gain is None else
-                                              f"{pct(ev['sft_own']['greedy_accuracy'])} -> "
-                                              f"{pct(ev['grpo_own']['greedy_accuracy'])} ({100 * own_gain:+.1f} "
-                                              f"points; at least {100 * OWN_GAIN:+.0f})")
-               + ("" if None in sampled else f"; sampled accuracy {pct(sampled[0])} -> {pct(sampled[1])}") + ".")
+    parts = [f"greedy {pct(ev['sft']['greedy_accuracy'])} -> {pct(g)} ({100 * gain:+.1f} points; at least "
+             f"{100 * RL_GAIN:+.0f})",
+             f"pass@{k} not measured" if drop is None else
+             f"pass@{k} {pct(p16[0])} -> {pct(p16[1])} ({-100 * drop:+.1f} points; at most {100 * PASS_DROP:.0f} down)",
+             "phrasings of our own not measured" if own_gain is None else
+             f"phrasings of our own {pct(sft_own)} -> {pct(grpo_own)} ({100 * own_gain:+.1f} points; at least "
+             f"{100 * OWN_GAIN:+.0f})"]
+    rl_text = ", ".join(parts) + ("" if None in sampled else f"; sampled accuracy {pct(sampled[0])} -> "
+                                                            f"{pct(sampled[1])}") + "."
     return {"met": met, "text": text, "grpo_over_sft": 100 * gain, "rl_met": rl_met, "rl_text": rl_text}
 
 
