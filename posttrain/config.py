@@ -241,21 +241,25 @@ def _hints(cls: type) -> dict[str, Any]:
 
 
 def field_docs(cls: type) -> dict[str, str]:
-    """The one-line docstrings under each dataclass field (read from the source)."""
+    """The docstrings under each dataclass field (read from the source), a base class's included: a field
+    re-declared without one (a trainer's own default for `loop.TrainingConfig`'s `lr`) keeps its base's."""
     import ast
     import inspect
     import textwrap
 
-    try:
-        src = textwrap.dedent(inspect.getsource(cls))
-    except (OSError, TypeError):
-        return {}
     docs: dict[str, str] = {}
-    body = ast.parse(src).body[0].body  # type: ignore[attr-defined]
-    for a, b in zip(body, body[1:]):
-        if isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name) and isinstance(b, ast.Expr) \
-                and isinstance(b.value, ast.Constant) and isinstance(b.value.value, str):
-            docs[a.target.id] = b.value.value.strip()
+    for klass in reversed(cls.__mro__):
+        if not is_dataclass(klass):
+            continue
+        try:
+            src = textwrap.dedent(inspect.getsource(klass))
+        except (OSError, TypeError):
+            continue
+        body = ast.parse(src).body[0].body  # type: ignore[attr-defined]
+        for a, b in zip(body, body[1:]):
+            if isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name) and isinstance(b, ast.Expr) \
+                    and isinstance(b.value, ast.Constant) and isinstance(b.value.value, str):
+                docs[a.target.id] = b.value.value.strip()
     return docs
 
 
@@ -488,7 +492,9 @@ def describe_fields(cls: type, prefix: str = "") -> list[tuple[str, str, str, st
     docs = field_docs(cls)
     hints = _hints(cls)
     rows = []
-    for f in fields(cls):
+    inherited = {f.name for base in cls.__mro__[1:] if is_dataclass(base) for f in fields(base)}
+    # the class's own fields first, then those of its base (a trainer's, then the training block's)
+    for f in sorted(fields(cls), key=lambda f: f.name in inherited):
         tp = hints[f.name]
         key = f"{prefix}{f.name}"
         if is_dataclass(tp):

@@ -12,6 +12,8 @@ process and under `accelerate launch` (DDP/FSDP/DeepSpeed): the Accelerator deci
   logged after it dropped; returns its step and extra state (step 0 when starting fresh).
 - `weights_finite` / `check_weights`, and `naming_checkpoint`: a TrainingError raised inside it is re-raised
   with where the last good checkpoint is (which stays intact).
+- `TrainingBase` / `TrainingConfig`: the optimizer, schedule, logging and checkpoint fields every trainer's config
+  shares, defined here once (PPO's config takes the first's 11, the other trainers' the second's 14).
 - `build_optimizer` / `build_scheduler`: AdamW (no weight decay on norms, biases and
   embeddings), linear warmup then cosine / linear / constant.
 - `optimizer_step`: gradient accumulation over micro-batches (no gradient sync on all but
@@ -40,8 +42,9 @@ import random
 import shutil
 import time
 from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Literal
 
 import numpy as np
 import torch
@@ -53,6 +56,56 @@ from posttrain.runtime import (BF16_MIN_SPEEDUP, adopt_bf16_speedup, bf16_forced
 from posttrain.runtime import mixed_precision as resolve_mixed_precision
 from posttrain.trackers import Trackers, flat_config
 
+
+
+# ----------------------------------------------------------------------------- the training-config block
+@dataclass
+class TrainingBase:
+    """The optimizer, schedule, logging and checkpoint fields of every trainer's config, defined once.
+
+    A trainer's config inherits them and re-declares (type and default, no docstring) those whose default is its
+    own, e.g. `lr: float = 3e-3` in SFTConfig; its YAML keys are the same either way. `posttrain STAGE --help`
+    lists them after the trainer's own fields. PPO's config takes these 11; the other trainers' `TrainingConfig`'s 14.
+    """
+
+    lr: float = 1e-4
+    """Peak learning rate (AdamW; PPO: the policy's, `value_lr` the value model's)."""
+    weight_decay: float = 0.0
+    """AdamW weight decay (not applied to norms, biases and embeddings)."""
+    max_steps: int = 100
+    """Training steps: optimizer steps (sft, rm, dpo), batches of rollouts (grpo, distill), iterations (ppo)."""
+    schedule: Literal["cosine", "linear", "constant"] = "constant"
+    """Learning-rate schedule after warmup, over every optimizer update of the run."""
+    max_grad_norm: float = 1.0
+    """Gradient clipping norm (of each model; 0 disables)."""
+    log_every: int = 1
+    """Steps between console metric lines (sft, rm, dpo and ppo write metrics.jsonl at the same steps; grpo and
+    distill every step)."""
+    eval_every: int = 20
+    """Steps between periodic held-out evaluations (what each trainer evaluates: its module docstring); 0: none
+    (the evaluation before and after training is `final_eval_rows`', where the trainer has one)."""
+    save_every: int = 50
+    """Steps between checkpoints (0: only at the end)."""
+    keep_checkpoints: int = 2
+    """Checkpoints kept on disk (oldest deleted first)."""
+    seed: int = 0
+    """Seed of the stage's randomness: data or prompt order, sampling, init-time draws (each from its own stream,
+    `stream_seed`)."""
+    resume: bool = False
+    """Continue from the newest checkpoint in the run directory."""
+
+
+@dataclass
+class TrainingConfig(TrainingBase):
+    """`TrainingBase` and three fields PPO fixes for itself (no warmup, linear decay to 0, micro-batches by tokens)."""
+
+    micro_batch_size: int = 0
+    """Rows per forward pass at most (gradient accumulation; a preference pair counts as one and is 2 rows); 0: no
+    row cap (`run.micro_batch_tokens` still caps their padded tokens)."""
+    warmup_steps: int = 0
+    """Linear warmup, in optimizer updates."""
+    min_lr_ratio: float = 0.0
+    """Final learning rate as a fraction of the peak (cosine / linear)."""
 
 
 # ----------------------------------------------------------------------------- setup

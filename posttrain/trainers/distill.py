@@ -62,7 +62,7 @@ from posttrain.rollout.multiturn import episode_metrics
 
 
 @dataclass
-class DistillConfig:
+class DistillConfig(loop.TrainingConfig):
     teacher: str = "grpo"
     """A stage of this recipe (its final/, built when missing) or a model directory / .gguf file (`teacher_dir`)."""
     teacher_model: str = ""
@@ -101,38 +101,12 @@ class DistillConfig:
     """Generation budget per sample."""
     temperature: float = 1.0
     """Sampling temperature (> 0); both models' logits are divided by it in the loss."""
-    lr: float = 5e-5
-    """Peak learning rate (AdamW)."""
-    weight_decay: float = 0.0
-    """AdamW weight decay (not applied to norms and embeddings)."""
-    warmup_steps: int = 0
-    """Linear warmup steps."""
-    schedule: Literal["cosine", "linear", "constant"] = "constant"
-    """Learning-rate schedule after warmup."""
-    min_lr_ratio: float = 0.0
-    """Final learning rate as a fraction of the peak (cosine / linear)."""
-    max_grad_norm: float = 1.0
-    """Gradient clipping norm (0 disables)."""
-    micro_batch_size: int = 0
-    """Rows per forward pass at most; 0: no row cap (the token budget still applies)."""
-    max_steps: int = 100
-    """Steps; each is one batch of samples and one optimizer step."""
-    log_every: int = 1
-    """Steps between console lines (metrics.jsonl gets every step)."""
-    eval_every: int = 20
-    """Steps between held-out greedy evaluations; 0: only before and after training."""
     eval_rows: int = 100
     """Held-out problems for the periodic evaluation."""
     final_eval_rows: int = 200
     """Held-out problems for the before / after / teacher comparison (0 skips it)."""
-    save_every: int = 50
-    """Steps between checkpoints (0: only at the end)."""
-    keep_checkpoints: int = 2
-    """Checkpoints kept on disk (oldest deleted first)."""
-    seed: int = 0
-    """Seed of prompt order, sampling and the student / teacher draw."""
-    resume: bool = False
-    """Continue from the newest checkpoint in the run directory."""
+    # loop.TrainingConfig's fields (one docstring each, there) whose default is this trainer's own:
+    lr: float = 5e-5
 
 
 def check_config(cfg: DistillConfig) -> None:

@@ -68,7 +68,7 @@ from posttrain.preferences import (TokenizedPair, by_side, collate_pairs, pair_g
 
 
 @dataclass
-class DPOConfig:
+class DPOConfig(loop.TrainingConfig):
     train_file: str | None = None
     """Preference file (JSONL/JSON/Parquet: prompt, chosen, rejected); empty: the prefs stage output (sampled)."""
     eval_file: str | None = None
@@ -92,37 +92,12 @@ class DPOConfig:
     """Prefix sharing: one row per pair (prompt, chosen, rejected; rejected masked off chosen), prompt computed once."""
     reference: Literal["precomputed", "live"] = "precomputed"
     """precomputed: reference log-probs once before training, no reference model in memory; live: a frozen copy."""
-    lr: float = 1e-4
-    """Peak learning rate (AdamW)."""
-    weight_decay: float = 0.0
-    """AdamW weight decay (not applied to norms and embeddings)."""
     batch_size: int = 32
     """Pairs per optimizer step (global, across processes)."""
-    micro_batch_size: int = 0
-    """Pairs per forward pass at most (each is 2 rows: chosen and rejected); 0 means batch_size.
-    `run.micro_batch_tokens` also caps the padded tokens of each (auto: ~2 GiB of activations for the model)."""
-    max_steps: int = 200
-    """Optimizer steps."""
-    warmup_steps: int = 10
-    """Linear warmup steps."""
-    schedule: Literal["cosine", "linear", "constant"] = "linear"
-    """Learning-rate schedule after warmup."""
-    min_lr_ratio: float = 0.0
-    """Final learning rate as a fraction of the peak (cosine / linear)."""
-    max_grad_norm: float = 1.0
-    """Gradient clipping norm (0 disables)."""
-    log_every: int = 10
-    """Steps between metric lines."""
-    eval_every: int = 50
-    """Steps between evaluations (held-out pairs, gold, proxy RM, KL); 0: only at the end."""
     eval_rows: int = 100
     """Held-out prompts for the periodic gold / proxy / KL evaluation."""
     eval_pairs: int = 200
     """Held-out pairs for the periodic implicit-reward accuracy."""
-    save_every: int = 100
-    """Steps between checkpoints (0: only at the end)."""
-    keep_checkpoints: int = 2
-    """Checkpoints kept on disk (oldest deleted first)."""
     final_eval_rows: int = 200
     """Held-out prompts for the final comparison with the SFT model (0 skips it)."""
     max_new_tokens: int = 64
@@ -147,10 +122,13 @@ class DPOConfig:
     """Online DPO: save the regenerations' samples every this many steps (0: never; `posttrain rollouts`)."""
     on_bad_rows: Literal["error", "skip"] = "error"
     """Bad pairs (chosen == rejected, empty side, too long): stop with the file and row, or skip with a count."""
-    seed: int = 0
-    """Seed of data order, online sampling and init-time randomness."""
-    resume: bool = False
-    """Continue from the newest checkpoint in the run directory."""
+    # loop.TrainingConfig's fields (one docstring each, there) whose default is this trainer's own:
+    max_steps: int = 200
+    schedule: Literal["cosine", "linear", "constant"] = "linear"
+    log_every: int = 10
+    eval_every: int = 50
+    save_every: int = 100
+    warmup_steps: int = 10
 
 
 def check_config(cfg: DPOConfig) -> None:

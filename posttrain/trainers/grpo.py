@@ -101,7 +101,7 @@ from posttrain.rollout.multiturn import episode_metrics
 
 
 @dataclass
-class GRPOConfig:
+class GRPOConfig(loop.TrainingConfig):
     verifier: str = "auto"
     """Reward verifier spec ("countdown", "0.9*math + 0.1*format", "file.py:name"); auto: the task's; none: RM only."""
     env: str = ""
@@ -158,8 +158,6 @@ class GRPOConfig:
     """Optimisation passes over each batch of rollouts (GRPO's mu), against the sampling policy's log-probs."""
     minibatches: int = 1
     """Optimizer updates per pass (the batch is split into this many minibatches)."""
-    micro_batch_size: int = 0
-    """Rows per forward pass at most (gradient accumulation); 0: no cap (`run.micro_batch_tokens` caps tokens)."""
     old_logprobs: Literal["auto", "rollout", "recompute"] = "auto"
     """pi_old (detail 11): the engine's log-probs, a no-grad recompute by the trainer (some settings recompute
     regardless), or auto: recompute where the sampler's numerics are not the trainer's (bf16, vLLM)."""
@@ -181,38 +179,12 @@ class GRPOConfig:
     """pass_rate: the smallest sampling weight (always-solved and never-solved problems keep this much)."""
     curriculum_decay: float = 0.5
     """pass_rate: EMA decay of each problem's pass rate (0: only its latest group)."""
-    lr: float = 1e-4
-    """Peak learning rate (AdamW)."""
-    weight_decay: float = 0.0
-    """AdamW weight decay (not applied to norms and embeddings)."""
-    warmup_steps: int = 0
-    """Linear warmup, in optimizer updates."""
-    schedule: Literal["cosine", "linear", "constant"] = "constant"
-    """Learning-rate schedule after warmup."""
-    min_lr_ratio: float = 0.0
-    """Final learning rate as a fraction of the peak (cosine / linear)."""
-    max_grad_norm: float = 1.0
-    """Gradient clipping norm (0 disables)."""
-    max_steps: int = 100
-    """Steps; each is one batch of rollouts (mu x minibatches optimizer updates)."""
-    log_every: int = 1
-    """Steps between console lines (metrics.jsonl gets every step)."""
-    eval_every: int = 20
-    """Steps between held-out greedy evaluations; 0: only before and after training."""
     eval_rows: int = 100
     """Held-out problems for the periodic evaluation."""
     final_eval_rows: int = 200
     """Held-out problems for the SFT vs GRPO comparison (before and after training; 0 skips it)."""
-    save_every: int = 50
-    """Steps between checkpoints (0: only at the end)."""
-    keep_checkpoints: int = 2
-    """Checkpoints kept on disk (oldest deleted first)."""
     save_rollouts_every: int = 0
     """Steps between saving scored rollouts to rollouts/step-NNNNNN.jsonl (`posttrain rollouts DIR`); 0: never."""
-    seed: int = 0
-    """Seed of prompt order, sampling and row shuffles."""
-    resume: bool = False
-    """Continue from the newest checkpoint in the run directory."""
 
 
 def check_config(cfg: GRPOConfig) -> None:

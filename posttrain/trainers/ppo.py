@@ -103,7 +103,7 @@ from posttrain.scoring import GoldScorer, RewardModelScorer
 
 
 @dataclass
-class PPOConfig:
+class PPOConfig(loop.TrainingBase):
     reward: Literal["rm", "gold", "env"] = "rm"
     """rm: the reward model (reward_model, else the rm stage output, built if missing); gold: the task's gold scorer;
     env: the final reward of `env`'s episodes (set with env, and only with it)."""
@@ -115,8 +115,6 @@ class PPOConfig:
     """Keyword options of the environment, its limits included (e.g. {max_turns: 3, tool_timeout_s: 2})."""
     reward_model: str = ""
     """Reward-model directory; empty: runs/<recipe>/rm/final (with reward=gold only the proxy curve, if it exists)."""
-    max_steps: int = 40
-    """PPO iterations: each is one rollout batch followed by ppo_epochs passes of minibatch updates."""
     rollout_batch_size: int = 64
     """Training prompts per iteration (one sampled completion each; global, across processes)."""
     minibatch_size: int = 16
@@ -124,16 +122,8 @@ class PPOConfig:
     forward in micro-batches of at most `run.micro_batch_tokens` padded tokens (auto: ~2 GiB of activations)."""
     ppo_epochs: int = 2
     """Passes over each rollout batch, minibatches reshuffled every pass."""
-    lr: float = 1e-4
-    """Policy learning rate (AdamW)."""
     value_lr: float = 1e-4
     """Value-model learning rate (its own AdamW; replaces a value-loss coefficient)."""
-    weight_decay: float = 0.0
-    """AdamW weight decay of both models (not applied to norms and embeddings)."""
-    schedule: Literal["linear", "cosine", "constant"] = "linear"
-    """Learning-rate schedule over all optimizer steps (max_steps * ppo_epochs * minibatches)."""
-    max_grad_norm: float = 1.0
-    """Gradient clipping norm of each model (0 disables)."""
     temperature: float = 1.0
     """Rollout sampling temperature (no top-k / top-p: the full distribution is sampled)."""
     scale_logits_by_temperature: bool = True
@@ -185,10 +175,6 @@ class PPOConfig:
     """Start the value model from the reward model (transformer and head) or from the SFT model with a new head."""
     disable_dropout: bool = True
     """Set every dropout probability (incl. attention dropout) of policy, value and reference to 0."""
-    log_every: int = 1
-    """Iterations between metric lines."""
-    eval_every: int = 10
-    """Iterations between evaluations (gold, win-rate vs SFT, proxy RM, KL); 0: only at the end."""
     eval_rows: int = 100
     """Held-out prompts for the periodic evaluation."""
     final_eval_rows: int = 200
@@ -196,14 +182,11 @@ class PPOConfig:
     save_rollouts_every: int = 0
     """Iterations between saving the iteration's scored rollouts to rollouts/step-NNNNNN.jsonl (0: never); read them
     with `posttrain rollouts RUN_DIR`."""
+    # loop.TrainingBase's fields (one docstring each, there) whose default is this trainer's own:
+    max_steps: int = 40
+    schedule: Literal["cosine", "linear", "constant"] = "linear"
+    eval_every: int = 10
     save_every: int = 10
-    """Iterations between checkpoints (0: only at the end)."""
-    keep_checkpoints: int = 2
-    """Checkpoints kept on disk (oldest deleted first)."""
-    seed: int = 0
-    """Seed of prompt order, rollout sampling, minibatch order and the value head init."""
-    resume: bool = False
-    """Continue from the newest checkpoint in the run directory."""
 
 
 def check_config(cfg: PPOConfig) -> None:

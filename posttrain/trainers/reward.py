@@ -43,46 +43,25 @@ from posttrain.scoring import pair_rewards, rm_appends_eos
 
 
 @dataclass
-class RMConfig:
+class RMConfig(loop.TrainingConfig):
     train_file: str | None = None
     """Preference file (JSONL/JSON/Parquet: prompt, chosen, rejected); empty: the prefs stage output (sampled)."""
     eval_file: str | None = None
     """Held-out preference file; empty: the prefs stage's eval pairs (or 5% of train_file)."""
-    lr: float = 3e-4
-    """Peak learning rate (AdamW)."""
-    weight_decay: float = 0.0
-    """AdamW weight decay (not applied to norms and embeddings)."""
     batch_size: int = 32
     """Pairs per optimizer step (global, across processes)."""
-    micro_batch_size: int = 0
-    """Pairs per forward pass at most (each is 2 rows); 0 means batch_size. `run.micro_batch_tokens` also caps the
-    padded tokens of each (auto: ~2 GiB of activations for the model)."""
-    max_steps: int = 150
-    """Optimizer steps."""
-    warmup_steps: int = 10
-    """Linear warmup steps."""
-    schedule: Literal["cosine", "linear", "constant"] = "cosine"
-    """Learning-rate schedule after warmup."""
-    min_lr_ratio: float = 0.1
-    """Final learning rate as a fraction of the peak (cosine / linear)."""
-    max_grad_norm: float = 1.0
-    """Gradient clipping norm (0 disables)."""
-    log_every: int = 10
-    """Steps between metric lines."""
-    eval_every: int = 50
-    """Steps between held-out pair evaluations (0: only at the end)."""
     eval_pairs: int = 500
     """Held-out pairs evaluated."""
-    save_every: int = 50
-    """Steps between checkpoints (0: only at the end)."""
-    keep_checkpoints: int = 2
-    """Checkpoints kept on disk (oldest deleted first)."""
     on_bad_rows: Literal["error", "skip"] = "error"
     """Bad pairs (chosen == rejected, empty side, too long): stop with the file and row, or skip with a count."""
-    seed: int = 0
-    """Seed of the head's init and the data order."""
-    resume: bool = False
-    """Continue from the newest checkpoint in the run directory."""
+    # loop.TrainingConfig's fields (one docstring each, there) whose default is this trainer's own:
+    lr: float = 3e-4
+    max_steps: int = 150
+    schedule: Literal["cosine", "linear", "constant"] = "cosine"
+    log_every: int = 10
+    eval_every: int = 50
+    warmup_steps: int = 10
+    min_lr_ratio: float = 0.1
 
 
 # ----------------------------------------------------------------------------- train

@@ -35,47 +35,28 @@ from posttrain.logprobs import nll_sum, token_weights
 
 
 @dataclass
-class SFTConfig:
-    lr: float = 3e-3
-    """Peak learning rate (AdamW)."""
-    weight_decay: float = 0.0
-    """AdamW weight decay (not applied to norms and embeddings)."""
+class SFTConfig(loop.TrainingConfig):
     batch_size: int = 32
     """Sequences per optimizer step (global, across processes)."""
-    micro_batch_size: int = 0
-    """Sequences per forward pass at most; 0 means batch_size (`run.micro_batch_tokens` caps their padded tokens)."""
-    max_steps: int = 400
-    """Optimizer steps."""
-    warmup_steps: int = 20
-    """Linear warmup steps."""
-    schedule: Literal["cosine", "linear", "constant"] = "cosine"
-    """Learning-rate schedule after warmup."""
-    min_lr_ratio: float = 0.1
-    """Final learning rate as a fraction of the peak (cosine / linear)."""
-    max_grad_norm: float = 1.0
-    """Gradient clipping norm (0 disables)."""
-    log_every: int = 20
-    """Steps between metric lines."""
-    eval_every: int = 100
-    """Steps between held-out loss evaluations and sample generations (0 disables)."""
     eval_loss_rows: int = 128
     """Held-out rows used for the periodic eval loss."""
     num_samples: int = 2
     """Held-out prompts whose greedy completions are printed at each eval."""
-    save_every: int = 100
-    """Steps between checkpoints (0: only at the end)."""
-    keep_checkpoints: int = 2
-    """Checkpoints kept on disk (oldest deleted first)."""
     final_eval_rows: int = 100
     """Held-out prompts scored with the task's gold metric after training (0 skips)."""
     max_new_tokens: int = 64
     """Generation budget for samples and the final evaluation."""
     prompt_loss_weight: float = 0.0
     """Weight of prompt tokens in the loss (0: completion-only). A small weight helps a model trained from scratch."""
-    seed: int = 0
-    """Seed of data order and init-time randomness."""
-    resume: bool = False
-    """Continue from the newest checkpoint in the run directory."""
+    # loop.TrainingConfig's fields (one docstring each, there) whose default is this trainer's own:
+    lr: float = 3e-3
+    max_steps: int = 400
+    schedule: Literal["cosine", "linear", "constant"] = "cosine"
+    log_every: int = 20
+    eval_every: int = 100
+    save_every: int = 100
+    warmup_steps: int = 20
+    min_lr_ratio: float = 0.1
 
 
 # ----------------------------------------------------------------------------- train
