@@ -56,7 +56,8 @@ import torch
 from posttrain import loop
 from posttrain.chat import encode_prompts, is_conversation, prompt_key, prompt_text
 from posttrain.logprobs import masked_sum, packed_logprobs, sequence_logprobs
-from posttrain.data import DataError, collate_completions, hub_rows, hub_source, normalized_row, token_groups
+from posttrain.data import (DataError, TokenizedPair, collate_pairs, hub_rows, hub_source, normalized_row,
+                            token_groups)
 
 PAIR_FIELDS = ("prompt", "chosen", "rejected")
 UNPAIRED_FIELDS = ("prompt", "completion", "label")  # TRL's unpaired preference format (KTO)
@@ -406,16 +407,6 @@ class BadRows:
         return f"skipped {self.count} bad row{'s' if self.count != 1 else ''} of {self.source}: " + "; ".join(parts)
 
 
-@dataclass
-class TokenizedPair:
-    """Token ids of one pair: prompt (with the tokenizer's special tokens), each completion (+ eos)."""
-
-    prompt: list[int]
-    chosen: list[int]
-    rejected: list[int]
-    row: int  # 1-based row number in its source
-
-
 def check_pairs(rows: list[dict], source: str, on_bad: Literal["error", "skip"], tokenizer=None,
                 max_length: int | None = None, append_eos: bool = True
                 ) -> tuple[list[dict], list[TokenizedPair], BadRows]:
@@ -524,61 +515,6 @@ def strip_private(rows: list[dict]) -> list[dict]:
 
 
 # ----------------------------------------------------------------------------- batches
-def collate_pairs(pairs: Sequence[TokenizedPair], pad_id: int, share_prompt: bool = False) -> dict[str, torch.Tensor]:
-    """One right-padded batch holding the chosen rows first, then the rejected rows: (2B, T) tensors.
-
-    input_ids, attention_mask, completion_mask (the completion tokens incl. eos). Chosen and
-    rejected go through the model in ONE forward pass (concatenated along the batch, as TRL's
-    `concatenated_forward`); row i and row B + i are the two sides of pair i.
-    share_prompt=True: the packed layout of `collate_shared_prompt` instead (the prompt once per pair).
-    """
-    if share_prompt:
-        return collate_shared_prompt(pairs, pad_id)
-    # two right-padded rows per pair, (2B, T): prompt + chosen, then prompt + rejected
-    return collate_completions([(p.prompt, p.chosen) for p in pairs] + [(p.prompt, p.rejected) for p in pairs], pad_id)
-
-
-
-def collate_shared_prompt(pairs: Sequence[TokenizedPair], pad_id: int) -> dict[str, torch.Tensor]:
-    """One row per pair: prompt, chosen, rejected, right-padded (B, T), for `logprobs.packed_logprobs`.
-
-    The rejected tokens attend to the prompt and to themselves, never to the chosen tokens, and their
-    positions continue from the prompt as if chosen were absent; so each side's log-probs equal those of
-    its own (prompt + completion) row, while the prompt is computed once per pair instead of twice
-    (prefix sharing). Keys: input_ids, position_ids (B, T); allowed (B, T, T) bool (query, key);
-    pred_index / targets / target_mask (B, Lc + Lr): chosen tokens in columns [:Lc], rejected in [Lc:],
-    each with the column whose logits predict it (the last prompt column predicts the first token of
-    both sides); chosen_cols = Lc. Pad columns attend only to themselves (their outputs are never read).
-    """
-    B = len(pairs)
-    T = max(len(p.prompt) + len(p.chosen) + len(p.rejected) for p in pairs)
-    Lc = max(len(p.chosen) for p in pairs)
-    L = Lc + max(len(p.rejected) for p in pairs)
-    input_ids = torch.full((B, T), pad_id, dtype=torch.long)  # (B, T)
-    position_ids = torch.zeros((B, T), dtype=torch.long)  # (B, T)
-    allowed = torch.eye(T, dtype=torch.bool).repeat(B, 1, 1)  # (B, T, T)
-    causal = torch.ones(T, T, dtype=torch.bool).tril()  # (T, T)
-    pred_index = torch.zeros((B, L), dtype=torch.long)  # (B, Lc + Lr)
-    targets = torch.zeros((B, L), dtype=torch.long)  # (B, Lc + Lr)
-    target_mask = torch.zeros((B, L), dtype=torch.bool)  # (B, Lc + Lr)
-    for b, p in enumerate(pairs):
-        P, C, R = len(p.prompt), len(p.chosen), len(p.rejected)
-        n = P + C + R
-        input_ids[b, :n] = torch.tensor(p.prompt + p.chosen + p.rejected)
-        position_ids[b, :P + C] = torch.arange(P + C)
-        position_ids[b, P + C:n] = torch.arange(P, P + R)
-        allowed[b, :n, :n] = causal[:n, :n]
-        allowed[b, P + C:n, P:P + C] = False  # rejected never sees chosen
-        pred_index[b, :C] = torch.arange(P - 1, P + C - 1)
-        pred_index[b, Lc] = P - 1
-        pred_index[b, Lc + 1:Lc + R] = torch.arange(P + C, n - 1)
-        targets[b, :C] = torch.tensor(p.chosen)
-        targets[b, Lc:Lc + R] = torch.tensor(p.rejected)
-        target_mask[b, :C] = True
-        target_mask[b, Lc:Lc + R] = True
-    return {"input_ids": input_ids, "position_ids": position_ids, "allowed": allowed, "pred_index": pred_index,
-            "targets": targets, "target_mask": target_mask, "chosen_cols": torch.tensor(Lc)}
-
 # ----------------------------------------------------------------------------- the stage
 def train(res, ensure) -> Path:
     """The prefs stage: write `final/{train,eval}.jsonl` (see the module docstring); returns final/."""

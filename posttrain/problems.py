@@ -26,10 +26,13 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from posttrain import loop, sharding
 from posttrain.errors import ConfigError
+
+if TYPE_CHECKING:
+    from posttrain.verifiers.envs import Environment, ToolRunner
 
 PREFLIGHT_ROWS = 8  # worked solutions scored before training (a broken verifier stops there)
 
@@ -221,16 +224,16 @@ class Reward:
     verifier_parts: set[str]  # reward parts that are verifier verdicts (logged as pass/<part> too)
     correctness: str | None  # the first term of a composition: eval/accuracy's part
     prefix: str  # "verifier/" when a WeightedScorer prefixes its scorers' parts
-    env: Any = None  # a multi-turn environment (posttrain.verifiers.envs): episodes replace single completions
-    runner: Any = None  # its ToolRunner
+    env: Environment | None = None  # a multi-turn environment: episodes replace single completions
+    runner: ToolRunner | None = None
 
 
-def build_env_reward(env, runner) -> Reward:
+def build_env_reward(env: Environment, runner: ToolRunner | None) -> Reward:
     """The reward of a run in a multi-turn environment: `env.reward` of each episode (no verifier, no scorer)."""
     return Reward(None, None, None, None, set(), None, "", env, runner)
 
 
-def load_env(cfg, stage: str):
+def load_env(cfg, stage: str) -> Environment | None:
     """The run's multi-turn environment (`<stage>.env` with `<stage>.env_options`), or None when env is empty; a
     bad spec or option is one ConfigError line naming the key."""
     if not cfg.env:

@@ -111,11 +111,11 @@ def left_pad(seqs: Sequence[Sequence[int]], pad_id: int) -> tuple[torch.Tensor, 
 
 
 def pair_rewards(model, pairs, pad_id: int) -> torch.Tensor:
-    """(2B,) rewards of `preferences.TokenizedPair`s (prompt + chosen, prompt + rejected): chosen rows first, then
+    """(2B,) rewards of `data.TokenizedPair`s (prompt + chosen, prompt + rejected): chosen rows first, then
     rejected, in ONE forward (the reward model's Bradley-Terry step; differentiable).
 
     On the lean path (a plain Llama-family reward model, `lean_support(..., head="score")`) each pair is ONE row,
-    prompt + chosen + rejected, under the 4D mask of DPO's prefix sharing (`preferences.collate_shared_prompt`:
+    prompt + chosen + rejected, under the 4D mask of DPO's prefix sharing (`data.collate_shared_prompt`:
     rejected never sees chosen, its positions continue from the prompt), so the prompt runs once per pair, and the
     rewards are the head's output at each side's last token: the same numbers as two left-padded rows within fp32
     rounding (tested). Otherwise two left-padded rows per pair through `reward_forward`."""
@@ -134,7 +134,7 @@ def pair_rewards(model, pairs, pad_id: int) -> torch.Tensor:
 def _shared_prompt_rewards(model, pairs, pad_id: int, dev) -> torch.Tensor:
     """`pair_rewards` on the lean path: one packed row per pair (prompt once), the score at each side's last token."""
     from posttrain.lean import train as lean
-    from posttrain.preferences import collate_shared_prompt
+    from posttrain.data import collate_shared_prompt
 
     b = collate_shared_prompt(pairs, pad_id)
     x = lean.lean_packed_hidden(model, b["input_ids"].to(dev), b["position_ids"].to(dev), b["allowed"].to(dev))

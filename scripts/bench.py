@@ -902,7 +902,8 @@ def _dpo_setup(args, real: bool = False, bf16: bool = False) -> SimpleNamespace:
     """
     from posttrain import loop
     from posttrain.losses import dpo_loss
-    from posttrain.preferences import check_pairs, collate_pairs, pair_logps, reference_logps
+    from posttrain.data import collate_pairs
+    from posttrain.preferences import check_pairs, pair_logps, reference_logps
 
     if real:
         from posttrain import chat

@@ -174,6 +174,44 @@ def test_verifiers_import_nothing_of_posttrain_or_torch_and_have_no_cycles():
     assert not bad, "\n".join(bad)
 
 
+MAX_FLOORS = 8  # issue 50: a ninth floor (scoring -> preferences) was taken down by moving the pair rows to data
+
+
+def room(module: str) -> str:
+    """A module's room in the floor count: a package folder under posttrain/ (rollout, trainers, tasks, lean) is one
+    room, any other module its own."""
+    parts = module.split(".")
+    return ".".join(parts[:2])
+
+
+def floors(graph: dict[str, set[str]]) -> list[str]:
+    """The longest chain of imports between posttrain's rooms, top room first (its length is the number of floors;
+    `posttrain.verifiers`, the package below them all, and the package's own __init__ are not counted)."""
+    rooms: dict[str, set[str]] = {}
+    for src, targets in graph.items():
+        if src == "posttrain" or src.startswith("posttrain.verifiers"):
+            continue
+        rooms.setdefault(room(src), set()).update(
+            room(t) for t in targets if t.startswith("posttrain.") and not t.startswith("posttrain.verifiers")
+            and room(t) != room(src))
+    memo: dict[str, list[str]] = {}
+
+    def chain(r: str) -> list[str]:
+        if r not in memo:
+            memo[r] = [r] + max((chain(t) for t in rooms.get(r, ()) if t in rooms), key=len, default=[])
+        return memo[r]
+
+    return max((chain(r) for r in sorted(rooms)), key=len)
+
+
+def test_the_import_graph_has_at_most_eight_floors():
+    graph = import_graph(ROOT / "posttrain", VERIFIERS)
+    assert not cycles(graph)
+    longest = floors(graph)
+    assert len(longest) <= MAX_FLOORS, (f"{len(longest)} floors of imports (at most {MAX_FLOORS}): "
+                                        + " -> ".join(longest))
+
+
 # ------------------------------------------------------------------ the checker itself
 def _package(tmp_path: Path, files: dict[str, str]) -> Path:
     root = tmp_path / "posttrain"
@@ -237,3 +275,16 @@ def test_checker_maps_the_verifiers_folder_to_its_installed_name(tmp_path):
     both = import_graph(root, (folder, "posttrain.verifiers"))
     assert both["posttrain.problems"] == {"posttrain.verifiers"}
     assert not [b for b in layer_violations(both) if "posttrain.problems" in b]
+
+
+def test_floors_count_a_package_folder_as_one_room(tmp_path):
+    root = _package(tmp_path, {
+        "__init__.py": "from posttrain import cli\n",  # the package's own __init__: not a room
+        "cli.py": "from posttrain.trainers import sft\n",
+        "trainers/__init__.py": "",
+        "trainers/sft.py": "from posttrain.trainers import common\nfrom posttrain import loop\n",  # inside one room
+        "trainers/common.py": "from posttrain import loop\n",
+        "loop.py": "from posttrain import errors\nfrom posttrain.verifiers import registry\n",
+        "errors.py": "",
+    })
+    assert floors(import_graph(root)) == ["posttrain.cli", "posttrain.trainers", "posttrain.loop", "posttrain.errors"]

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import torch
 
@@ -56,10 +56,13 @@ from .engine import (DEFAULT_MAX_BATCH_TOKENS, _eos_ids, default_backend, plan_m
 from .records import Rollout
 from .sampling import Sampler, SamplingParams, row_uniforms
 
+if TYPE_CHECKING:
+    from posttrain.verifiers.envs import Environment
+
 PAUSE_SLACK = 0.5  # cache columns for waiting rows, as a fraction of limits.max_total_tokens
 
 
-def generate_episodes(model, tokenizer, env, problems: Sequence[dict], sampling: SamplingParams | None = None, *,
+def generate_episodes(model, tokenizer, env: Environment, problems: Sequence[dict], sampling: SamplingParams | None = None, *,
                       prompt_keys: Sequence[int] | None = None, runner=None,
                       max_batch_tokens: int = DEFAULT_MAX_BATCH_TOKENS, backend: str | None = None,
                       **overrides) -> list[Rollout]:
@@ -126,7 +129,7 @@ def _hide(fwd, rows: list[int], col: int) -> None:
 class _Batch:
     """One micro-batch of episodes: the per-row state machine sample -> (wait -> force ->) sample ... -> done."""
 
-    def __init__(self, fwd, env, tokenizer, runner, params, rows, ids, first, problems, keys, eos, pad, vocab, steps):
+    def __init__(self, fwd, env: Environment, tokenizer, runner, params, rows, ids, first, problems, keys, eos, pad, vocab, steps):
         from posttrain.verifiers.envs import Episode
 
         self.fwd, self.env, self.tok, self.runner, self.params = fwd, env, tokenizer, runner, params
@@ -296,11 +299,25 @@ class _Batch:
                     completion_mask=self.mask[b])
         r.reward = float(self.env.reward(ep))
         r.extras["episode"] = {**ep.to_dict(), "sampled_tokens": int(sum(self.mask[b])),
-                               "env_tokens": self.env_tokens[b]}
+                               "env_tokens": self.env_tokens[b], "metrics": env_metrics(self.env, ep)}
         return r
 
     def first_messages(self, i: int) -> list[dict]:
         return [dict(m) for m in self.first[i]]
+
+
+def env_metrics(env: Environment, episode) -> dict[str, float]:
+    """`env.metrics(episode)` after its reward, checked: a mapping of names to finite numbers (saved in the
+    rollout's `extras["episode"]["metrics"]`, averaged by `episode_metrics` as `env/<name>`); anything else is a
+    ValueError naming the environment."""
+    import math
+
+    got = env.metrics(episode)
+    if not isinstance(got, dict) or not all(isinstance(k, str) and isinstance(v, (int, float)) and not
+                                            isinstance(v, bool) and math.isfinite(v) for k, v in got.items()):
+        raise ValueError(f"environment {env.name!r}: metrics(episode) must return a dict of names to finite numbers, "
+                         f"got {got!r}")
+    return {k: float(v) for k, v in got.items()}
 
 
 def episode_metrics(rollouts: Sequence[Rollout]) -> dict[str, float]:

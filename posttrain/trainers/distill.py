@@ -46,7 +46,7 @@ import random
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import torch
 
@@ -59,6 +59,10 @@ from posttrain.problems import (HeldOut, Problem, Reward, build_env_reward, buil
                                 preflight, sample_and_score, tokenize_problems)
 from posttrain.rollout import SamplingParams
 from posttrain.rollout.multiturn import episode_metrics
+
+if TYPE_CHECKING:  # the annotations of the run object only
+    from accelerate import Accelerator
+    from transformers import PreTrainedTokenizerBase
 
 
 @dataclass
@@ -187,26 +191,26 @@ def train(res: Resolved, ensure) -> Path:
 
 
 # ----------------------------------------------------------------------------- setup, update and the end of a run
-@dataclass
+@dataclass(kw_only=True)
 class DistillRun:
     """What a run holds between steps (`setup`)."""
 
     res: Resolved
     cfg: DistillConfig
-    accelerator: Any
-    say: Any  # prints on the main process
+    accelerator: Accelerator
+    say: Callable[[str], None]  # prints on the main process
     run_dir: Path
     main: bool
     sft_dir: Path
     teacher_dir: Path
-    tokenizer: Any
-    model: Any  # the student as accelerate prepared it
-    student: Any  # the student inside the wrapper: generation, evaluation, saving
-    teacher: Any  # frozen
+    tokenizer: PreTrainedTokenizerBase
+    model: torch.nn.Module  # the student as accelerate prepared it
+    student: torch.nn.Module  # the student inside the wrapper: generation, evaluation, saving
+    teacher: torch.nn.Module  # frozen
     vocab: int  # detail 6: the tokenizer's ids (padded output rows beyond it are never compared)
     budget: int  # padded tokens per micro-batch (both models' logits)
-    optimizer: Any
-    scheduler: Any
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.LRScheduler
     ckpt: loop.Checkpointer
     metrics: loop.MetricsLog
     problems: list[Problem]
@@ -269,9 +273,11 @@ def setup(res: Resolved, cfg: DistillConfig, ensure, stack: contextlib.ExitStack
     teacher_eval = teacher_baseline(held_out, teacher, tokenizer, run_dir / "teacher_eval.json", say) \
         if main and held_out is not None else {}
     say(describe_run(cfg, t_dir, len(problems), reward, accelerator.num_processes, device, budget))
-    return DistillRun(res, cfg, accelerator, say, run_dir, main, sft_dir, t_dir, tokenizer, model, student, teacher,
-                      len(tokenizer), budget, optimizer, scheduler, ckpt, metrics, problems, reward, held_out, start,
-                      baseline, teacher_eval)
+    return DistillRun(res=res, cfg=cfg, accelerator=accelerator, say=say, run_dir=run_dir, main=main, sft_dir=sft_dir,
+                      teacher_dir=t_dir, tokenizer=tokenizer, model=model, student=student, teacher=teacher,
+                      vocab=len(tokenizer), budget=budget, optimizer=optimizer, scheduler=scheduler, ckpt=ckpt,
+                      metrics=metrics, problems=problems, reward=reward, held_out=held_out, start=start,
+                      baseline=baseline, teacher_eval=teacher_eval)
 
 
 def update(run: DistillRun, rollouts: list, rewards: torch.Tensor, *, with_reward: bool, done: int,

@@ -14,7 +14,7 @@ Implementation details it follows, each with its source and flag (tested in test
  4. Hinge / SLiC-HF (Zhao et al. 2023, in TRL's form; `loss_type=hinge`): relu(1 - beta h).
  5. RPO (Pang et al. 2024; TRL's rpo_alpha; `chosen_nll_weight`): + weight x per-token NLL of the chosen side.
  6. Prefix sharing (`share_prompt`): a pair is ONE row, prompt + chosen + rejected, under a 4D mask in which the
-    rejected tokens see the prompt and themselves (`preferences.collate_shared_prompt`); false: chosen rows, then
+    rejected tokens see the prompt and themselves (`data.collate_shared_prompt`); false: chosen rows, then
     rejected rows, in one forward (TRL's concatenated_forward). The log-probs are the same either way.
  7. Precomputed vs live reference (`reference`): "precomputed" (TRL's precompute_ref_log_probs) keeps only the
     SFT model's log-prob sums of the pairs, taken before the first update; "live" a frozen copy (same numbers).
@@ -56,15 +56,19 @@ import random
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import torch
 
 from posttrain import evaluation, loop, models, preferences, scoring, tasks
 from posttrain.config import ConfigError, Resolved
 from posttrain.losses import dpo_loss, kto_loss, orpo_loss, simpo_loss
-from posttrain.preferences import (TokenizedPair, by_side, collate_pairs, pair_groups, pair_logps,
-                                   reference_logps)
+from posttrain.data import TokenizedPair, collate_pairs
+from posttrain.preferences import by_side, pair_groups, pair_logps, reference_logps
+
+if TYPE_CHECKING:  # the annotations of the run object only
+    from accelerate import Accelerator
+    from transformers import PreTrainedTokenizerBase
 
 
 @dataclass
@@ -194,29 +198,29 @@ def train(res: Resolved, ensure) -> Path:
 
 
 # ----------------------------------------------------------------------------- setup and the end of a run
-@dataclass
+@dataclass(kw_only=True)
 class DPORun:
     """What a run holds between steps (`setup`)."""
 
     res: Resolved
     cfg: DPOConfig
-    accelerator: Any
-    say: Any  # prints on the main process
+    accelerator: Accelerator
+    say: Callable[[str], None]  # prints on the main process
     run_dir: Path
     main: bool
     sft_dir: Path
     rm_dir: Path | None  # the proxy reward model (and online_labeler=rm's labeller)
     data: PairData
-    tokenizer: Any
-    model: Any  # as accelerate prepared it
-    policy: Any  # the model inside the DDP / FSDP wrapper: generation, saving
+    tokenizer: PreTrainedTokenizerBase
+    model: torch.nn.Module  # as accelerate prepared it
+    policy: torch.nn.Module  # the model inside the DDP / FSDP wrapper: generation, saving
     ref: Reference
     budget: int  # padded tokens per micro-batch (memory)
     per_process: int  # pairs per process of a batch
     baseline: list[str]  # the SFT model's completions of the gold rows (main process)
-    proxy: Any  # the proxy reward model's scorer (main process), or None
-    optimizer: Any
-    scheduler: Any
+    proxy: scoring.RewardModelScorer | None  # the proxy reward model's scorer (main process), or None
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.LRScheduler
     ckpt: loop.Checkpointer
     metrics: loop.MetricsLog
     pool: Pool  # the pairs of the first step: the offline pairs or a resumed online pool
@@ -258,8 +262,10 @@ def setup(res: Resolved, cfg: DPOConfig, ensure) -> DPORun:
     pool = Pool(**{**saved, "pairs": [TokenizedPair(**p) for p in saved["pairs"]]}) if saved else \
         Pool(data.train, ref_train, labels=data.train_labels)
     policy = accelerator.unwrap_model(model)  # the model inside the DDP / FSDP wrapper: generation, saving
-    run = DPORun(res, cfg, accelerator, say, res.stage_dir(), main, sft_dir, rm_dir, data, tokenizer, model, policy,
-                 ref, budget, per_process, baseline, proxy, optimizer, scheduler, ckpt, metrics, pool, start)
+    run = DPORun(res=res, cfg=cfg, accelerator=accelerator, say=say, run_dir=res.stage_dir(), main=main,
+                 sft_dir=sft_dir, rm_dir=rm_dir, data=data, tokenizer=tokenizer, model=model, policy=policy, ref=ref,
+                 budget=budget, per_process=per_process, baseline=baseline, proxy=proxy, optimizer=optimizer,
+                 scheduler=scheduler, ckpt=ckpt, metrics=metrics, pool=pool, start=start)
     if start == 0 and cfg.eval_every:
         evaluate(0, run)
     what = "rows (each with its KL partner)" if cfg.loss_type == "kto" else "pairs"

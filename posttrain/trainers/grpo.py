@@ -86,7 +86,7 @@ import functools
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import torch
 
@@ -98,6 +98,10 @@ from posttrain.losses import aggregate_token_loss, kl_penalty, policy_loss, roll
 from posttrain.problems import (HeldOut, Problem, Reward, build_env_reward, build_reward, load_env, load_problems,
                                 preflight, sample_and_score, tokenize_problems)
 from posttrain.rollout.multiturn import episode_metrics
+
+if TYPE_CHECKING:  # the annotations of the run object only
+    from accelerate import Accelerator
+    from transformers import PreTrainedTokenizerBase
 
 
 @dataclass
@@ -282,25 +286,25 @@ def train(res: Resolved, ensure) -> Path:
 
 
 # ----------------------------------------------------------------------------- setup and the end of a run
-@dataclass
+@dataclass(kw_only=True)
 class GRPORun:
     """What a run holds between steps (`setup`)."""
 
     res: Resolved
     cfg: GRPOConfig
-    accelerator: Any
-    say: Any  # prints on the main process
+    accelerator: Accelerator
+    say: Callable[[str], None]  # prints on the main process
     run_dir: Path
     main: bool
     sft_dir: Path
-    tokenizer: Any
-    model: Any  # as accelerate prepared it
-    policy: Any  # the model inside the wrapper: generation, evaluation, saving
-    ref_model: Any  # None when beta = 0
+    tokenizer: PreTrainedTokenizerBase
+    model: torch.nn.Module  # as accelerate prepared it
+    policy: torch.nn.Module  # the model inside the wrapper: generation, evaluation, saving
+    ref_model: torch.nn.Module | None  # None when beta = 0
     budget: int  # padded tokens per micro-batch (memory)
     recompute_old: bool  # pi_old recomputed by the trainer (not the sampler's log-probs)
-    optimizer: Any
-    scheduler: Any
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.LRScheduler
     ckpt: loop.Checkpointer
     metrics: loop.MetricsLog
     problems: list[Problem]
@@ -372,9 +376,11 @@ def setup(res: Resolved, cfg: GRPOConfig, ensure, stack: contextlib.ExitStack) -
     baseline = held_out.sft_baseline(policy, tokenizer, run_dir / "sft_eval.json", start, metrics, say) if main else {}
     say(describe_run(cfg, reward, len(problems), rm_dir, recompute_old, accelerator.num_processes, device, budget))
     rounds = 1 + (cfg.max_resample_rounds if cfg.zero_variance == "resample" else 0)
-    return GRPORun(res, cfg, accelerator, say, run_dir, main, sft_dir, tokenizer, model, policy, ref_model, budget,
-                   recompute_old, optimizer, scheduler, ckpt, metrics, problems,
-                   {p.key: i for i, p in enumerate(problems)}, reward, held_out, curriculum, rounds, start, baseline)
+    return GRPORun(res=res, cfg=cfg, accelerator=accelerator, say=say, run_dir=run_dir, main=main, sft_dir=sft_dir,
+                   tokenizer=tokenizer, model=model, policy=policy, ref_model=ref_model, budget=budget,
+                   recompute_old=recompute_old, optimizer=optimizer, scheduler=scheduler, ckpt=ckpt, metrics=metrics,
+                   problems=problems, index_of={p.key: i for i, p in enumerate(problems)}, reward=reward,
+                   held_out=held_out, curriculum=curriculum, rounds=rounds, start=start, baseline=baseline)
 
 
 def finish(run: GRPORun) -> Path:

@@ -40,7 +40,8 @@ tests/posttrain/trainers/test_ppo.py (the losses and GAE themselves in test_loss
 18. Several epochs (`ppo_epochs`) of minibatches (`minibatch_size`), reshuffled every epoch (seeded).
 19. Learning-rate annealing (`schedule`): linear to 0 over all optimizer steps by default.
 20. Multi-turn episodes (`env`, `env_options`, reward=env; tests/posttrain/trainers/test_ppo_env.py): a rollout is
-    an episode in a tool-use environment (`posttrain.rollout.multiturn.generate_episodes`): turn 1's sampled
+    an episode in a tool-use environment, sampled by the driver GRPO and distillation use too
+    (`problems.sample_and_score` over `rollout.multiturn.generate_episodes`; `problems.load_env`): turn 1's sampled
     tokens, the environment's tokens (tool results, the next assistant header), turn 2's sampled tokens, ...; the
     score (details 1-3) is the environment's final reward. Sampled tokens are the actions and the only time
     steps: the KL penalty, the per-token rewards (`advantages.turn_rewards_with_kl`: each turn's reward, when the
@@ -82,7 +83,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import numpy as np
 import torch
@@ -96,10 +97,16 @@ from posttrain.lean.support import lean_support
 from posttrain.logprobs import masked_mean, masked_sum, masked_whiten, sequence_logprobs
 from posttrain import losses
 from posttrain.losses import kl_penalty, rollout_correction, sampler_mismatch, value_loss
-from posttrain.problems import HeldOut, Problem, build_env_reward, env_problem
+from posttrain.problems import HeldOut, Problem, build_env_reward, env_problem, load_env, sample_and_score
 from posttrain.rollout import SamplingParams, collate_rollouts, generate
-from posttrain.rollout.multiturn import episode_metrics, generate_episodes
+from posttrain.rollout.multiturn import episode_metrics
 from posttrain.scoring import GoldScorer, RewardModelScorer
+
+if TYPE_CHECKING:  # annotations only
+    from accelerate import Accelerator
+    from transformers import PreTrainedTokenizerBase
+
+    from posttrain.verifiers.envs import Environment, ToolRunner
 
 
 @dataclass
@@ -294,14 +301,14 @@ def sample_seed(seed: int, it: int) -> int:
 
 
 
-@dataclass
+@dataclass(kw_only=True)
 class PPORun:
     """What a run holds between iterations (`setup`)."""
 
     res: Resolved
     cfg: PPOConfig
-    accelerator: Any
-    say: Any  # prints on the main process
+    accelerator: Accelerator
+    say: Callable[[str], None]  # prints on the main process
     run_dir: Path
     main: bool
     sft_dir: Path
@@ -313,11 +320,11 @@ class PPORun:
     baseline: list[str]  # the SFT model's completions of them
     episodes: HeldOut | None  # in an environment: greedy held-out episodes (main process), else None
     episodes_baseline: dict  # the SFT model's numbers on them (`HeldOut.sft_baseline`)
-    opt_p: Any  # the policy's optimizer and scheduler
-    sched_p: Any
-    opt_v: Any  # the value model's
-    sched_v: Any
-    kl_ctl: Any
+    opt_p: torch.optim.Optimizer  # the policy's optimizer and scheduler
+    sched_p: torch.optim.lr_scheduler.LRScheduler
+    opt_v: torch.optim.Optimizer  # the value model's
+    sched_v: torch.optim.lr_scheduler.LRScheduler
+    kl_ctl: FixedKLController | AdaptiveKLController
     ckpt: loop.Checkpointer
     metrics: loop.MetricsLog
     norm: dict[str, float] | None  # detail 1's reward statistics (reward_norm=init)
@@ -376,9 +383,11 @@ def setup(res: Resolved, cfg: PPOConfig, ensure, stack: contextlib.ExitStack) ->
         f"minibatches of {cfg.minibatch_size}; reward {cfg.reward}{what}, value from {cfg.value_init}, KL "
         f"{cfg.kl_estimator} coef {kl_ctl.value:g} ({cfg.kl_control}), temperature {cfg.temperature}; {world} "
         f"process(es) on {dev}")
-    return PPORun(res, cfg, accelerator, say, res.stage_dir(), main, sft_dir, rm_dir, nets, budget, train_rows,
-                  held_out, baseline, episodes, episodes_baseline or {}, opt_p, sched_p, opt_v, sched_v, kl_ctl, ckpt,
-                  metrics, norm, state["step"])
+    return PPORun(res=res, cfg=cfg, accelerator=accelerator, say=say, run_dir=res.stage_dir(), main=main,
+                  sft_dir=sft_dir, rm_dir=rm_dir, nets=nets, budget=budget, train_rows=train_rows, held_out=held_out,
+                  baseline=baseline, episodes=episodes, episodes_baseline=episodes_baseline or {}, opt_p=opt_p,
+                  sched_p=sched_p, opt_v=opt_v, sched_v=sched_v, kl_ctl=kl_ctl, ckpt=ckpt, metrics=metrics, norm=norm,
+                  start=state["step"])
 
 
 def save_checkpoint(run: PPORun, done: int) -> None:
@@ -675,8 +684,8 @@ class PPOModels:
     tokenizer: Any
     scorer: Any  # the training reward (None in an environment: it rewards the episodes)
     proxy: Any  # the reward model as the evaluation's proxy scorer (main process), or None
-    env: Any = None  # the environment (detail 20), or None
-    runner: Any = None  # its ToolRunner
+    env: Environment | None = None  # the environment (detail 20), or None
+    runner: ToolRunner | None = None
 
 
 def load_inputs(res: Resolved, cfg: PPOConfig, ensure) -> tuple[list[dict], list[dict], Path, Path | None, Any]:
@@ -684,7 +693,7 @@ def load_inputs(res: Resolved, cfg: PPOConfig, ensure) -> tuple[list[dict], list
     when reward=rm or value_init=reward needs it, else only the proxy curve if it exists), the environment (None
     without one; with one, both splits' rows as its problems and no reward model); one-line ConfigErrors."""
     if cfg.env:  # detail 20
-        env = load_env(cfg)
+        env = load_env(cfg, "ppo")
         train_rows = [env_problem(r) for r in tasks.load_split(res.task, "train")]
         if len(train_rows) < cfg.rollout_batch_size:
             raise ConfigError(f"ppo.rollout_batch_size={cfg.rollout_batch_size} is more than the {len(train_rows)} "
@@ -714,16 +723,6 @@ def load_inputs(res: Resolved, cfg: PPOConfig, ensure) -> tuple[list[dict], list
     return train_rows, eval_rows, sft_dir, rm_dir, None
 
 
-def load_env(cfg: PPOConfig):
-    """Detail 20: the run's environment (`ppo.env` with `env_options`); a bad spec or option is one ConfigError."""
-    from posttrain.verifiers.envs import get_env
-
-    try:
-        return get_env(cfg.env, **cfg.env_options)
-    except (ValueError, ImportError) as e:
-        raise ConfigError(f"ppo.env: {e}") from None
-
-
 def build_models(res: Resolved, cfg: PPOConfig, sft_dir: Path, rm_dir: Path | None, dev, say, main: bool) -> PPOModels:
     """Policy and reference from the SFT model (`models.load_reference`), the value model per value_init (LoRA: each
     its own adapters), dropout off (detail 13), the reward and the proxy scorer."""
@@ -745,21 +744,22 @@ def rollout_and_score(accelerator, nets: PPOModels, cfg: PPOConfig, train_rows: 
     """The global batch train_rows[keys]: each process samples (prompt keys = dataset indices: the samples one process
     draws) and scores its positions, all gathered in global order. Returns (rollouts, raw scores (B,), {"sample":
     s, "score": s} of this process)."""
+    params = SamplingParams(temperature=cfg.temperature, max_new_tokens=cfg.max_new_tokens, seed=seed)
+    policy = accelerator.unwrap_model(nets.policy)
+    if nets.env is not None:  # detail 20: episodes through the trainers' one multi-turn driver, its final reward
+        problems = [Problem(train_rows[k]["prompt"], train_rows[k]["answer"], k, env_problem=train_rows[k])
+                    for k in keys]  # the key (dataset index) seeds the episode, as below
+        got = sample_and_score(accelerator, policy, nets.tokenizer, problems, list(range(len(keys))), params,
+                               build_env_reward(nets.env, nets.runner), 0)
+        return ([g.rollouts[0] for g in got.groups], torch.tensor([float(g.rewards[0]) for g in got.groups]),
+                {"sample": got.sample_s, "score": got.score_s})
     where = sharding.positions(len(keys), accelerator.process_index, accelerator.num_processes)
     rows, t0 = [train_rows[keys[p]] for p in where], time.time()  # rows: none for a process with no share
-    params = SamplingParams(temperature=cfg.temperature, max_new_tokens=cfg.max_new_tokens, seed=seed)
-    policy, prompt_keys = accelerator.unwrap_model(nets.policy), [keys[p] for p in where]
-    if nets.env is not None:  # detail 20: episodes (the environment's limits, not max_new_tokens), its final reward
-        local = generate_episodes(policy, nets.tokenizer, nets.env, rows, params, prompt_keys=prompt_keys,
-                                  runner=nets.runner) if rows else []
-        t1 = time.time()
-        raw = [float(ro.reward) for ro in local]
-    else:
-        local = generate(policy, nets.tokenizer, [r["prompt"] for r in rows], params,
-                         prompt_keys=prompt_keys) if rows else []
-        t1 = time.time()
-        raw = [float(x) for x in nets.scorer.score([r["prompt"] for r in rows], [ro.text for ro in local],
-                                                [r.get("meta") for r in rows]).rewards] if rows else []
+    local = generate(policy, nets.tokenizer, [r["prompt"] for r in rows], params,
+                     prompt_keys=[keys[p] for p in where]) if rows else []
+    t1 = time.time()
+    raw = [float(x) for x in nets.scorer.score([r["prompt"] for r in rows], [ro.text for ro in local],
+                                            [r.get("meta") for r in rows]).rewards] if rows else []
     return (sharding.gather_rows(accelerator, local, where), torch.tensor(sharding.gather_rows(accelerator, raw, where),
             dtype=torch.float32), {"sample": t1 - t0, "score": time.time() - t1})
 

@@ -31,15 +31,20 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import torch
 
 from posttrain import loop
 from posttrain.config import Resolved
 from posttrain.losses import bradley_terry_loss
-from posttrain.preferences import TokenizedPair, pair_groups
+from posttrain.data import TokenizedPair
+from posttrain.preferences import pair_groups
 from posttrain.scoring import pair_rewards, rm_appends_eos
+
+if TYPE_CHECKING:  # the annotations of the run object only
+    from accelerate import Accelerator
+    from transformers import PreTrainedTokenizerBase
 
 
 @dataclass
@@ -67,17 +72,81 @@ class RMConfig(loop.TrainingConfig):
 # ----------------------------------------------------------------------------- train
 def train(res: Resolved, ensure) -> Path:
     """Train a reward model on preference pairs; returns the final HF directory."""
-    from posttrain.models import load_reward_init, maybe_lora, save_model, token_budget
-
     cfg: RMConfig = res.stage_cfg
+    run = setup(res, cfg, ensure)  # data first (a bad pair stops before the run dir changes), model, optimizer, resume
+    ev: dict[str, float] = {}
+    for step in range(run.start, cfg.max_steps):
+        done = step + 1
+        # ---- batch: this process's share of the step's pairs, in micro-batches
+        idx = loop.batch_indices(len(run.train_pairs), cfg.batch_size, cfg.seed, step,
+                                 run.accelerator.process_index, run.accelerator.num_processes)[:run.per_process]
+        batch = [run.train_pairs[i] for i in idx]
+        micro_batches = [[batch[i] for i in g] for g in pair_groups(batch, run.micro, run.budget)]
+
+        def loss_fn(chunk):  # chosen and rejected of every pair in one forward
+            r = pair_rewards(run.model, chunk, run.pad_id)  # (2b,)
+            loss, m = bradley_terry_loss(r[: len(chunk)], r[len(chunk):])
+            return loss * (len(chunk) / len(idx)), m
+
+        # ---- update
+        saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
+        with loop.naming_checkpoint(run.ckpt):
+            m = loop.optimizer_step(run.accelerator, run.model, run.optimizer, run.scheduler, micro_batches, loss_fn,
+                                    cfg.max_grad_norm, done)
+            if saving:
+                loop.check_weights(done, run.model)
+        # ---- log
+        if done % cfg.log_every == 0 or done == cfg.max_steps:
+            run.metrics.log(done, m)
+        # ---- eval: held-out pair accuracy and margin
+        if done == cfg.max_steps or (cfg.eval_every and done % cfg.eval_every == 0):
+            ev = heldout_metrics(run.model, run.eval_pairs, run.pad_id, run.micro, run.budget)
+            run.metrics.log(done, ev, console=False)
+            if ev:
+                run.say(f"[rm] step {done}: held-out pair accuracy {ev['eval/accuracy']:.3f}, "
+                        f"margin {ev['eval/margin']:.3f}")
+        # ---- checkpoint
+        if saving:
+            run.ckpt.save(done, run.model, run.optimizer, run.scheduler, {"step": done})
+    return finish(run, ev)
+
+
+# ----------------------------------------------------------------------------- setup and the end of a run
+@dataclass(kw_only=True)
+class RMRun:
+    """What a run holds between steps (`setup`)."""
+
+    res: Resolved
+    cfg: RMConfig
+    accelerator: Accelerator
+    say: Callable[[str], None]  # prints on the main process
+    run_dir: Path
+    main: bool
+    tokenizer: PreTrainedTokenizerBase
+    pad_id: int
+    model: torch.nn.Module  # as accelerate prepared it
+    train_pairs: list[TokenizedPair]
+    eval_pairs: list[TokenizedPair]
+    micro: int  # pairs per micro-batch at most
+    budget: int  # padded tokens per micro-batch (memory)
+    per_process: int  # pairs per process of a batch
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.LRScheduler
+    ckpt: loop.Checkpointer
+    metrics: loop.MetricsLog
+    start: int  # the first step (resume)
+    t0: float  # when the loop began (eval.json's seconds)
+
+
+def setup(res: Resolved, cfg: RMConfig, ensure) -> RMRun:
+    """The pairs first (a bad pair stops the run before the run dir changes), then the SFT model with its new score
+    head (LoRA: adapters on the transformer, the head trained fully), the optimizer and the resumed state."""
+    from posttrain.models import load_reward_init, maybe_lora, token_budget
+
     run_dir = res.stage_dir()
-    # Data first: a bad row stops the run before the run dir changes.
     sft_dir, tokenizer, train_pairs, eval_pairs, source = load_pairs(res, cfg, ensure)
     pad_id = tokenizer.pad_token_id
-
     accelerator, say = loop.start_run(res, cfg.seed, cfg.resume)
-    main = accelerator.is_main_process
-
     # LoRA: adapters on the transformer, the new score head trained fully (peft's SEQ_CLS modules_to_save)
     model = maybe_lora(res, load_reward_init(sft_dir, pad_id, cfg.seed, accelerator.device, res.model.dtype), say,
                        "SEQ_CLS")
@@ -88,53 +157,35 @@ def train(res: Resolved, ensure) -> Path:
     scheduler = loop.build_scheduler(optimizer, cfg.warmup_steps, cfg.max_steps, cfg.schedule, cfg.min_lr_ratio)
     model, optimizer = accelerator.prepare(model, optimizer)
     ckpt = loop.Checkpointer(run_dir, cfg.keep_checkpoints, accelerator)
-    metrics = loop.open_metrics(res, cfg.max_steps, main, "[rm] ")
-
+    metrics = loop.open_metrics(res, cfg.max_steps, accelerator.is_main_process, "[rm] ")
     start = loop.resume_run(ckpt, metrics, model, optimizer, scheduler, resume=cfg.resume, say=say, tag="rm")["step"]
-
     say(f"[rm] {len(train_pairs)} training pairs from {source}, {len(eval_pairs)} held-out, batch {cfg.batch_size} "
         f"(micro {micro} pairs, <= {budget} tokens), {cfg.max_steps} steps, lr {cfg.lr}")
-    t0 = time.time()
-    for step in range(start, cfg.max_steps):
-        done = step + 1
-        idx = loop.batch_indices(len(train_pairs), cfg.batch_size, cfg.seed, step,
-                                 accelerator.process_index, accelerator.num_processes)[:per_process]
-        batch = [train_pairs[i] for i in idx]
-        micro_batches = [[batch[i] for i in g] for g in pair_groups(batch, micro, budget)]
+    return RMRun(res=res, cfg=cfg, accelerator=accelerator, say=say, run_dir=run_dir,
+                 main=accelerator.is_main_process, tokenizer=tokenizer, pad_id=pad_id, model=model,
+                 train_pairs=train_pairs, eval_pairs=eval_pairs, micro=micro, budget=budget, per_process=per_process,
+                 optimizer=optimizer, scheduler=scheduler, ckpt=ckpt, metrics=metrics, start=start, t0=time.time())
 
-        def loss_fn(chunk):
-            r = pair_rewards(model, chunk, pad_id)  # (2b,)
-            loss, m = bradley_terry_loss(r[: len(chunk)], r[len(chunk):])
-            return loss * (len(chunk) / len(idx)), m
 
-        saving = (cfg.save_every and done % cfg.save_every == 0) or done == cfg.max_steps
-        with loop.naming_checkpoint(ckpt):
-            m = loop.optimizer_step(accelerator, model, optimizer, scheduler, micro_batches, loss_fn,
-                                    cfg.max_grad_norm, done)
-            if saving:
-                loop.check_weights(done, model)
-        if done % cfg.log_every == 0 or done == cfg.max_steps:
-            metrics.log(done, m)
-        if done == cfg.max_steps or (cfg.eval_every and done % cfg.eval_every == 0):
-            ev = heldout_metrics(model, eval_pairs, pad_id, micro, budget)
-            metrics.log(done, ev, console=False)
-            if ev:
-                say(f"[rm] step {done}: held-out pair accuracy {ev['eval/accuracy']:.3f}, margin {ev['eval/margin']:.3f}")
-        if saving:
-            ckpt.save(done, model, optimizer, scheduler, {"step": done})
+def finish(run: RMRun, ev: dict[str, float]) -> Path:
+    """final/ (every process gathers a sharded model; the main process saves) and eval.json with the held-out pair
+    metrics (`ev`, the last step's; measured here when a resumed run had no step left); returns final/."""
+    from posttrain.models import save_model
 
-    final = run_dir / "final"
-    whole = loop.full_state_dict(accelerator, model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
-    if main:
-        save_model(accelerator.unwrap_model(model), tokenizer, final, state_dict=whole)
-        ev = heldout_metrics(model, eval_pairs, pad_id, micro, budget) if start == cfg.max_steps else ev  # resumed at the end
-        loop.write_json(run_dir / "eval.json", {"model": str(final), "heldout": ev, "train_pairs": len(train_pairs),
-                                               "seconds": round(time.time() - t0, 1)})
-        say(f"[rm] saved {final}" + (f" (held-out pair accuracy {ev['eval/accuracy']:.3f} on {len(eval_pairs)} pairs)"
-                                     if ev else ""))
-        metrics.close(ev)
-    metrics.close()
-    accelerator.wait_for_everyone()
+    final = run.run_dir / "final"
+    whole = loop.full_state_dict(run.accelerator, run.model)  # every process: gathers a sharded model (FSDP, ZeRO-3)
+    if run.main:
+        save_model(run.accelerator.unwrap_model(run.model), run.tokenizer, final, state_dict=whole)
+        if run.start == run.cfg.max_steps:  # resumed at the end: no step measured it
+            ev = heldout_metrics(run.model, run.eval_pairs, run.pad_id, run.micro, run.budget)
+        loop.write_json(run.run_dir / "eval.json", {"model": str(final), "heldout": ev,
+                                                    "train_pairs": len(run.train_pairs),
+                                                    "seconds": round(time.time() - run.t0, 1)})
+        run.say(f"[rm] saved {final}" + (f" (held-out pair accuracy {ev['eval/accuracy']:.3f} on "
+                                         f"{len(run.eval_pairs)} pairs)" if ev else ""))
+        run.metrics.close(ev)
+    run.metrics.close()
+    run.accelerator.wait_for_everyone()
     return final
 
 

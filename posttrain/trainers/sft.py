@@ -23,7 +23,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Callable, Literal
 
 import torch
 
@@ -32,6 +32,10 @@ from posttrain.chat import prompt_text
 from posttrain.config import Resolved
 from posttrain.data import collate_completions, to_device, token_groups, tokenize_completions
 from posttrain.logprobs import nll_sum, token_weights
+
+if TYPE_CHECKING:  # the annotations of the run object only
+    from accelerate import Accelerator
+    from transformers import PreTrainedTokenizerBase
 
 
 @dataclass
@@ -104,26 +108,26 @@ def train(res: Resolved, ensure) -> Path:
 
 
 # ----------------------------------------------------------------------------- setup, eval and the end of a run
-@dataclass
+@dataclass(kw_only=True)
 class SFTRun:
     """What a run holds between steps (`setup`)."""
 
     res: Resolved
     cfg: SFTConfig
-    accelerator: Any
-    say: Any  # prints on the main process
+    accelerator: Accelerator
+    say: Callable[[str], None]  # prints on the main process
     run_dir: Path
     base_dir: Path
-    tokenizer: Any
-    model: Any  # as accelerate prepared it
-    train_pairs: list
-    eval_pairs: list
+    tokenizer: PreTrainedTokenizerBase
+    model: torch.nn.Module  # as accelerate prepared it
+    train_pairs: list[tuple]
+    eval_pairs: list[tuple]
     eval_rows: list[dict]
     micro: int  # rows per micro-batch at most
     budget: int  # padded tokens per micro-batch (memory)
     per_process: int  # rows per process of a batch
-    optimizer: Any
-    scheduler: Any
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.LRScheduler
     ckpt: loop.Checkpointer
     metrics: loop.MetricsLog
     start: int  # the first step (resume)
@@ -182,8 +186,10 @@ def setup(res: Resolved, cfg: SFTConfig, ensure) -> SFTRun:
     if sharded and cfg.eval_every and cfg.num_samples:
         say(f"[sft] no samples during training: the model is sharded over {accelerator.num_processes} processes; "
             f"the final evaluation runs on final/")
-    return SFTRun(res, cfg, accelerator, say, run_dir, base_dir, tokenizer, model, train_pairs, eval_pairs, eval_rows,
-                  micro, budget, per_process, optimizer, scheduler, ckpt, metrics, start, sharded)
+    return SFTRun(res=res, cfg=cfg, accelerator=accelerator, say=say, run_dir=run_dir, base_dir=base_dir,
+                  tokenizer=tokenizer, model=model, train_pairs=train_pairs, eval_pairs=eval_pairs, eval_rows=eval_rows,
+                  micro=micro, budget=budget, per_process=per_process, optimizer=optimizer, scheduler=scheduler,
+                  ckpt=ckpt, metrics=metrics, start=start, sharded=sharded)
 
 
 def evaluate(run: SFTRun, done: int) -> None:

@@ -8,7 +8,8 @@ import torch
 from posttrain import preferences
 from posttrain.cli import main
 from posttrain.data import DataError
-from posttrain.preferences import check_pairs, collate_pairs, form_pairs, read_pairs, sample_pairs
+from posttrain.data import collate_pairs
+from posttrain.preferences import check_pairs, form_pairs, read_pairs, sample_pairs
 from posttrain.tasks import summarize
 
 
@@ -99,7 +100,7 @@ def test_read_and_check_pairs_name_file_and_row(tmp_path, tiny):
 
 
 def test_collate_pairs_puts_chosen_then_rejected():
-    from posttrain.preferences import TokenizedPair
+    from posttrain.data import TokenizedPair
 
     pairs = [TokenizedPair([5, 6], [7, 1], [8, 9, 1], 1), TokenizedPair([5], [7, 7, 7, 1], [9, 1], 2)]
     b = collate_pairs(pairs, 0)
@@ -113,7 +114,8 @@ def test_collate_pairs_puts_chosen_then_rejected():
 def test_reference_logps_keep_the_pairs_order_when_grouped_by_length(tiny, share_prompt):
     """Long and short pairs interleaved, two pairs per micro-batch: grouped by length they are computed as pairs
     (0, 2) and (1, 3), and every entry is the pair's own, as one pair at a time gives it."""
-    from posttrain.preferences import TokenizedPair, pair_groups, reference_logps
+    from posttrain.data import TokenizedPair
+    from posttrain.preferences import pair_groups, reference_logps
 
     model, tok = tiny
     rng = random.Random(0)

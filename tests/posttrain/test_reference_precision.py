@@ -6,7 +6,7 @@ from transformers import LlamaConfig, LlamaForCausalLM
 
 from posttrain import loop, sharding
 from posttrain.logprobs import batched_logprobs
-from posttrain.preferences import TokenizedPair
+from posttrain.data import TokenizedPair
 
 
 def _frozen_model():

@@ -71,3 +71,19 @@ def test_help_lists_the_trainers_own_fields_first():
     assert rows[0] == "verifier"
     sft = [r[0] for r in describe_fields(stage_cls("sft"))]
     assert sft[0] == "batch_size" and sft[-len(FULL):] == FULL
+
+
+@pytest.mark.parametrize("stage", TRAINERS)
+def test_the_run_object_is_built_by_keyword_with_real_types(stage):
+    """Each trainer's `setup()` returns a keyword-only dataclass (no 25-argument positional call to misorder) whose
+    fields say what they hold (no `Any`)."""
+    import importlib
+
+    module = importlib.import_module(STAGES[stage].load()[0].__module__)
+    runs = [obj for name, obj in vars(module).items()
+            if name.endswith("Run") and isinstance(obj, type) and obj.__module__ == module.__name__]
+    assert len(runs) == 1, f"{module.__name__}: one run object expected, found {[r.__name__ for r in runs]}"
+    assert callable(getattr(module, "setup", None)) and callable(getattr(module, "finish", None)), module.__name__
+    for f in fields(runs[0]):
+        assert f.kw_only, f"{runs[0].__name__}.{f.name} can be passed by position"
+        assert "Any" not in str(f.type), f"{runs[0].__name__}.{f.name} is typed {f.type}"

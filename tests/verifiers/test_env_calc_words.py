@@ -93,3 +93,27 @@ def test_calc_words_partial_credit_parts_by_hand():
 def test_calc_words_partial_credit_out_of_range_is_refused(bad):
     with pytest.raises(ValueError, match="calc-words partial_credit must be in \\[0, 1\\)"):
         WordCalcEnv(partial_credit=bad)
+
+
+def test_calc_words_metrics_report_the_credit_parts_and_the_trainers_average_them():
+    """`metrics` (asked after `reward`) gives the partial-credit parts of a wrong answer; `episode_metrics` averages
+    each name over the episodes that report it, as `env/<name>`."""
+    from posttrain.verifiers.envs import episode_metrics
+
+    env = WordCalcEnv(partial_credit=0.6)
+    chained = _episode(WORD_PROBLEM, ["1068+806", "1874-131-2"], "1741", "answer")  # parts 1, 3/4, 1/2 (by hand)
+    no_call = _episode(WORD_PROBLEM, [], "12", "answer")  # wrong, no call: parts all 0, no credit
+    right = _episode(WORD_PROBLEM, ["1068+806-131"], "The answer is 1743.", "answer")
+    dicts = []
+    for ep in (chained, no_call, right):
+        env.reward(ep)
+        dicts.append({**ep.to_dict(), "metrics": env.metrics(ep)})
+    assert dicts[0]["metrics"] == {"reward_parts/call": 1.0, "reward_parts/numbers": 0.75, "reward_parts/value": 0.5,
+                                   "partial_credit": 1.0}
+    assert dicts[1]["metrics"]["partial_credit"] == 0.0 and dicts[2]["metrics"] == {}  # a right answer: no parts
+    m = episode_metrics(dicts)
+    assert m["env/reward_parts/numbers"] == pytest.approx((0.75 + dicts[1]["metrics"]["reward_parts/numbers"]) / 2)
+    assert m["env/partial_credit"] == 0.5 and "env/reward_parts/call" in m and m["env/tool_calls"] > 0
+    plain = WordCalcEnv()  # without partial credit: no parts, no metrics
+    plain.reward(no_call_again := _episode(WORD_PROBLEM, [], "12", "answer"))
+    assert plain.metrics(no_call_again) == {}

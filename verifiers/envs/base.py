@@ -253,14 +253,17 @@ class Environment:
         raise NotImplementedError(f"environment {self.name!r} must implement reward(episode)")
 
     def metrics(self, episode: Episode) -> dict[str, float]:
-        """Extra per-episode numbers for the logs (default: none)."""
+        """Extra per-episode numbers for the logs (default: none), asked after `reward(episode)`: names to finite
+        numbers. The engine saves them in the rollout (`extras["episode"]["metrics"]`) and the trainers log their
+        means as `env/<name>` (over the episodes that report each name)."""
         return {}
 
 
 def episode_metrics(episodes: Sequence[dict[str, Any]]) -> dict[str, float]:
     """Means over episodes (each `Episode.to_dict()`, as saved in a rollout's `extras["episode"]`): turns, tool calls,
     valid calls, errors of each kind, tool seconds, sampled and environment tokens, and the share of episodes that
-    called a tool and that ended with an answer."""
+    called a tool and that ended with an answer; then each number of the environment's own `metrics` (the episode's
+    "metrics"), as `env/<name>`, averaged over the episodes that report it (a name never shadows the ones above)."""
     n = max(1, len(episodes))
     calls = [c for e in episodes for t in e["turns"] for c in t["tool_calls"]]
     out = {
@@ -275,4 +278,10 @@ def episode_metrics(episodes: Sequence[dict[str, Any]]) -> dict[str, float]:
     }
     for kind in ERROR_KINDS:
         out[f"env/errors/{kind}"] = sum(c["error"] == kind for c in calls) / n
+    reported: dict[str, list[float]] = {}  # the environment's own numbers (`Environment.metrics`)
+    for e in episodes:
+        for k, v in (e.get("metrics") or {}).items():
+            reported.setdefault(k, []).append(float(v))
+    for k, vs in sorted(reported.items()):
+        out.setdefault(f"env/{k}", sum(vs) / len(vs))
     return out

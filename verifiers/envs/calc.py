@@ -16,7 +16,7 @@ and the episode ended with an answer turn; else 0.0. Known hacks and why they sc
 `digit_credit` (an env option, default 0): a wrong answer of the right length scores `digit_credit` times the
 share of its digits in place (always below 1, so accuracy, the share of rewards of 1, stays exact); a denser signal
 for GRPO on copying a long result (RESULTS.md, tiny-calc: it did not lift accuracy there).
-Per-turn reward: none (`turn_reward` returns None); `reward_parts` in the metrics says which rule decided.
+Per-turn reward: none (`turn_reward` returns None).
 """
 from __future__ import annotations
 
@@ -151,6 +151,8 @@ class WordCalcEnv(Environment):
       answer: `meta.ops` where the row has them, else the answer alone). Hack: fishing with many calls over the
       problem's numbers: every call that misses lowers the share, and every reuse of a number lowers `numbers`.
     A copied tool message, a turn limit hit and no calls at all score 0, as without partial credit.
+    Metrics (`metrics`; the trainers log them as `env/<name>`): `reward_parts/call`, `/numbers`, `/value`, each part's
+    mean over the wrong answers scored with partial credit, and `partial_credit`, the share of those that earned some.
     """
 
     name = "calc-words"
@@ -186,6 +188,14 @@ class WordCalcEnv(Environment):
                 reward, why = self.partial_credit * share, "wrong (partial credit)"
         episode.state["reward_rule"] = why
         return reward
+
+    def metrics(self, episode: Episode) -> dict[str, float]:
+        """With partial credit, for a wrong answer: each credit part's value and whether any credit was given."""
+        parts = episode.state.get("reward_parts")
+        if parts is None:
+            return {}
+        return {**{f"reward_parts/{k}": float(v) for k, v in parts.items()},
+                "partial_credit": float(episode.state.get("reward_rule") == "wrong (partial credit)")}
 
 
 NUMBER = re.compile(r"\d+(?:\.\d+)?")

@@ -467,7 +467,7 @@ def test_pair_rewards_share_the_prompt_on_the_lean_path_with_the_same_numbers(ki
     """scoring.pair_rewards packs each pair into one row (prompt once, rejected never seeing chosen) on the lean
     path: the same (2B,) rewards and gradients as two left-padded rows through the model's own forward, for pairs
     of different prompt, chosen and rejected lengths; and it does run fewer tokens (the prompt once)."""
-    from posttrain.preferences import TokenizedPair
+    from posttrain.data import TokenizedPair
     from posttrain.scoring import pair_rewards
 
     model = _seqcls(kind)
@@ -524,7 +524,7 @@ def test_packed_logprobs_lean_equals_hf(name):
     """DPO's shared-prompt rows (prompt, chosen, rejected; a 4D mask): the lean packed forward gives the HF
     forward's log-probs and gradients."""
     from posttrain.logprobs import packed_logprobs
-    from posttrain.preferences import TokenizedPair, collate_shared_prompt
+    from posttrain.data import TokenizedPair, collate_shared_prompt
 
     model = MODELS[name]()
     g = torch.Generator().manual_seed(4)

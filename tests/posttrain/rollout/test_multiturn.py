@@ -206,3 +206,38 @@ def test_bad_arguments_and_limits_are_one_line_errors(chat_lm):
         generate_episodes(model, tok, Echo(), PROBLEMS[:2], prompt_keys=[0])
     with pytest.raises(ValueError, match="Limits.max_turns must be a positive integer"):
         Limits(max_turns=0)
+
+
+class Counted(Echo):
+    """Echo whose `metrics` reports the episode's turns and calls (`bad` returns what an environment must not)."""
+
+    name = "counted"
+
+    def __init__(self, bad=None, **kw):
+        super().__init__(**kw)
+        self.bad = bad
+
+    def metrics(self, episode):
+        if self.bad is not None:
+            return self.bad
+        return {"turns_seen": len(episode.turns), "calls_seen": sum(len(t.results) for t in episode.turns)}
+
+
+def test_the_environments_own_metrics_are_saved_with_each_episode_and_averaged(chat_lm):
+    model, tok = chat_lm
+    rs = generate_episodes(model, tok, Counted(), PROBLEMS[:3], n=2, seed=3)
+    for r in rs:
+        ep = r.extras["episode"]
+        assert ep["metrics"] == {"turns_seen": float(len(ep["turns"])),
+                                 "calls_seen": float(sum(len(t["tool_calls"]) for t in ep["turns"]))}
+    m = episode_metrics(rs)
+    assert m["env/turns_seen"] == pytest.approx(m["env/turns"]) and m["env/calls_seen"] == pytest.approx(
+        m["env/tool_calls"])
+
+
+@pytest.mark.parametrize("bad", [(), {"x": float("nan")}, {"x": "high"}, [1.0]])
+def test_an_environments_bad_metrics_are_one_line_errors_naming_it(chat_lm, bad):
+    model, tok = chat_lm
+    env = Counted(bad=bad)
+    with pytest.raises(ValueError, match="environment 'counted': metrics\\(episode\\) must return a dict"):
+        generate_episodes(model, tok, env, PROBLEMS[:1], n=1, seed=0)

@@ -46,7 +46,8 @@ def test_one_forward_over_chosen_and_rejected_equals_two(world):
     """Both layouts (two rows per pair; one shared-prompt row per pair) give each side's own log-probs."""
     from posttrain.logprobs import masked_sum, sequence_logprobs
     from posttrain.models import load_model, load_tokenizer
-    from posttrain.preferences import check_pairs, collate_pairs, read_pairs
+    from posttrain.data import collate_pairs
+    from posttrain.preferences import check_pairs, read_pairs
     from posttrain.preferences import pair_logps
 
     model, tok = load_model(world["sft"]), load_tokenizer(world["sft"])
