@@ -122,8 +122,8 @@ class RunConfig:
     micro_batch_tokens: int = 0
     """Padded tokens per forward / backward in every stage, a bound on activation memory (each stage's
     micro_batch_size still caps the rows); 0: auto, the tokens whose activations take ~2 GiB for this model
-    (posttrain.models.token_budget; its values for a tiny and a 135M model: RESULTS.md, "Figures once kept in
-    code comments")."""
+    (posttrain.models.token_budget; its values for a tiny and a 135M model: docs/results-archive.md, "Figures once
+    kept in code comments")."""
 
 
 @dataclass

@@ -17,12 +17,13 @@ from column 0, padding included. Wrappers (accelerate/DDP, peft, torch.compile) 
 `.logits` from the output. A left-padded batch gets a 4D mask in which every pad query sees itself
 (`models.hf_attention_mask`): no attention row is empty, as on the lean path; the real tokens' numbers are those of
 the 2D mask. (Fully masked rows are where fused attention kernels differ; PPO with bf16 weights on an H200 met a
-non-finite gradient that this may be, unverified: RESULTS.md, "The GPU path".)
+non-finite gradient that this may be, unverified: docs/results-archive.md, "The GPU path".)
 
 Lean path. For a plain fp32 Llama / Mistral / Qwen2 `*ForCausalLM`, or one under peft LoRA adapters (not wrapped
 by DDP / torch.compile, no gradient checkpointing, no dropout; fp32 or under bf16 autocast) `sequence_logprobs` runs
 `posttrain.lean.lean_forward` instead of the model's forward, and a fused log-prob with a cheaper
-backward: the same numbers within fp32 rounding, faster for a tiny-model update step (RESULTS.md). Turn it
+backward: the same numbers within fp32 rounding, faster for a tiny-model update step
+(docs/results-archive.md, "Lean forwards"). Turn it
 off with `posttrain.lean.ENABLED = False` or POSTTRAIN_LEAN_TRAIN=0. Rows that share their prompt
 (GRPO's K completions per prompt) run that prompt once on this path (`lean.lean_forward_shared`), and the
 vocabulary-wide head runs on the scored columns only (`_scored_head`).

@@ -239,7 +239,7 @@ def build_optimizer(model: torch.nn.Module, lr: float, weight_decay: float = 0.0
     groups = [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
     groups = [g for g in groups if g["params"]]
     # The fused kernel (one pass per tensor, CPU and CUDA) when every parameter allows it: much faster than the
-    # per-tensor loop on the tiny presets' many small tensors (RESULTS.md).
+    # per-tensor loop on the tiny presets' many small tensors (docs/results-archive.md, "Lean forwards").
     params = decay + no_decay
     fused = bool(params) and all(p.is_floating_point() and p.device.type in ("cpu", "cuda") for p in params) \
         and len({(p.device.type, p.dtype) for p in params}) == 1

@@ -87,10 +87,10 @@ def native_bf16() -> bool:
     """bf16 matmuls run faster than fp32 ones here: a CUDA GPU with bf16 support, or a CPU with AVX512-BF16 or
     AMX-BF16 on which `bf16_speedup()` measures at least BF16_MIN_SPEEDUP (on Zen 4 bf16 autocast beats the
     fp32 matmul rate). The flags alone do not say it: an Intel Xeon (family 6 model 207, AVX512-BF16 listed,
-    AMX not exposed to the VM) ran bf16 matmuls slower than fp32 (measured: RESULTS.md, "bf16 on a CPU whose
-    flags list AVX512-BF16 but whose bf16 matmuls are slow" and "Figures once kept in code comments"); CPUs without
-    the flags emulate bf16 and are slower still (no probe is run there). `bf16_forced()` (POSTTRAIN_BF16, a
-    resumed run's recorded decision) answers first."""
+    AMX not exposed to the VM) ran bf16 matmuls slower than fp32 (measured: docs/results-archive.md, "bf16 on a CPU
+    whose flags list AVX512-BF16 but whose bf16 matmuls are slow" and "Figures once kept in code comments");
+    CPUs without the flags emulate bf16 and are slower still (no probe is run there). `bf16_forced()`
+    (POSTTRAIN_BF16, a resumed run's recorded decision) answers first."""
     forced = bf16_forced()
     if forced is not None:
         return forced[0]
@@ -146,7 +146,7 @@ _bf16_speedups: dict[int, float] = {}
 def bf16_speedup() -> float:
     """fp32 time / bf16 time of CPU matmuls at a decode shape (16 x 576 by 576 x 1536) and a training shape
     (256 x 576 by 576 x 1536), the smaller of the two (medians of 15 and 5 alternating calls: its cost,
-    RESULTS.md, "Figures once kept in code comments");
+    docs/results-archive.md, "Figures once kept in code comments");
     measured once per process and torch thread count (what `native_bf16` and so `auto` settings decide by)."""
     threads = torch.get_num_threads()
     if threads not in _bf16_speedups:
@@ -206,9 +206,9 @@ def tune_malloc() -> bool:
     kernel) and unmapped at every allocation: a 49k-vocabulary model's logits, softmax and head gradients (tens
     to hundreds of MiB each, several per step) cost a real-size distillation run of 4 steps 2.3-3.5 M page faults
     and a third of its time in the kernel; from the heap they are reused, its steps ~10% faster and GRPO's ~5%,
-    at ~3% more peak memory (RESULTS.md, "Page faults of large blocks"). The decode loop's per-step activations
-    (a few MiB) are recycled the same way. Process-wide (it also benefits anything else running); off glibc, or
-    with POSTTRAIN_NO_MALLOPT=1 in the environment, it does nothing."""
+    at ~3% more peak memory (docs/results-archive.md, "Page faults of large blocks"). The decode loop's per-step
+    activations (a few MiB) are recycled the same way. Process-wide (it also benefits anything else running);
+    off glibc, or with POSTTRAIN_NO_MALLOPT=1 in the environment, it does nothing."""
     global _malloc_tuned
     if _malloc_tuned:
         return True

@@ -398,8 +398,8 @@ STAGE_ROWS: dict[str, tuple[str, str, str, str, tuple[str, ...], tuple[str, ...]
     "dpo-lora": ("dpo LoRA", SUMMARIZE, "dpo", "lora", ("lora.enabled=true",), ("sft", "prefs")),
     "sft-autocast": ("sft fp32 weights + bf16 autocast", SUMMARIZE, "sft", "autocast",
                      ("model.dtype=float32", "run.mixed_precision=bf16"), ()),
-    # PPO's bf16-weights row failed on an H200 (non-finite gradient at step 1, RESULTS.md): the same chain in fp32
-    # weights under autocast tells the weights' precision from the compute's
+    # PPO's bf16-weights row failed on an H200 (non-finite gradient at step 1, docs/results-archive.md, "The GPU
+    # path"): the same chain in fp32 weights under autocast tells the weights' precision from the compute's
     "ppo-autocast": ("ppo fp32 weights + bf16 autocast", SUMMARIZE, "ppo", "autocast-ppo",
                      ("model.dtype=float32", "run.mixed_precision=bf16"), ("sft", "prefs", "rm")),
     "fsdp": ("sft FSDP2 1 process (fp32 weights, bf16)", SUMMARIZE, "sft", "fsdp", ("model.dtype=float32",), ()),

@@ -30,7 +30,7 @@ completions, at steps 10, 20, ..., 70); PPO: 20 iterations x 64 rollouts x 2 epo
 = 5,120 sequences (+ 20 x 64 samples). Measured wall times are reported next to the results.
 
 CPU:  python scripts/reproduce_e6.py --quick      tiny preset (~1.2M parameters), all seven arms x 3 seeds: 20.4 min
-                                                   with --threads 2 on 2 idle CPU cores (RESULTS.md, E6)
+                                                   with --threads 2 on 2 idle CPU cores (docs/results-archive.md, E6)
       python scripts/reproduce_e6.py --quick --arms dpo-offline ppo-rm    the headline arms only (about the
                                                    two-arm time)
       python scripts/reproduce_e6.py --threads 2  small preset (~11M parameters, the seed's 10M+), all seven arms x 3

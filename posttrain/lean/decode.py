@@ -17,8 +17,8 @@ and the static-shape step the engine uses on CUDA (`start(..., static=True)`, th
 - Packed weights on CPU (`pack_available`, hidden size >= PACK_MIN_HIDDEN): each fused matrix is reordered
   once per `load` into oneDNN's blocked layout and multiplied by its linear kernel (`torch.ops.mkldnn`),
   which skips the repacking a plain matmul does on every call: a higher decode throughput than plain fp32
-  matmuls on SmolLM2 at batch 16 (measured: RESULTS.md, "Figures once kept in code comments"). Same numbers
-  within fp32 rounding (tested); `dense(w)` converts one back.
+  matmuls on SmolLM2 at batch 16 (measured: docs/results-archive.md, "Figures once kept in code comments").
+  Same numbers within fp32 rounding (tested); `dense(w)` converts one back.
 - RoPE: the q/k rows of each head are permuted from the half-split pairing (x_i, x_{i+Dh/2}) that
   `rotate_half` uses to interleaved pairs, so rotating is one complex multiply by a
   (position, Dh/2) table built from the module's own `inv_freq` and `attention_scaling` with the
@@ -50,8 +50,8 @@ and the static-shape step the engine uses on CUDA (`start(..., static=True)`, th
   fp32, rounded once), RoPE (fp32 complex multiply: `view_as_complex` has no bf16, and fp32 is more exact than
   HF's bf16 cos/sin), attention (`F.scaled_dot_product_attention` with the additive key mask, the rep query
   heads of a kv head as its query "sequence": fp32 scores and softmax inside the fused kernel; explicit half
-  matmuls rounded the scores to bf16, further from fp32 log-probs than HF's bf16 forward: RESULTS.md, "Figures
-  once kept in code comments"), the logits
+  matmuls rounded the scores to bf16, further from fp32 log-probs than HF's bf16 forward:
+  docs/results-archive.md, "Figures once kept in code comments"), the logits
   handed to the sampler (the head's half output widened to fp32), sampling and log-probs. Folded norm
   weights are rounded once with the matrix they scale (HF rounds the normed activations instead): logits
   within bf16 rounding of the HF bf16 forward (tested). No packed oneDNN weights for half compute; on CPU
@@ -94,13 +94,15 @@ from .support import rope_cis, rope_pair_order
 # ----------------------------------------------------------------------------- packed weights (CPU)
 # oneDNN's linear on weights reordered once into its blocked layout (torch.ops.mkldnn: the kernels
 # torch.compile's CPU freezing uses) skips the per-call repacking a plain matmul does, which dominates at
-# decode sizes (measured on SmolLM2: RESULTS.md, "Lean forwards" and "Figures once kept in code comments").
+# decode sizes (measured on SmolLM2: docs/results-archive.md, "Lean forwards" and "Figures once kept in code
+# comments").
 # POSTTRAIN_ENGINE_PACK=0 (or PACK = False) keeps plain matmuls; where the ops are missing or a
 # probe disagrees with F.linear, plain matmuls are used.
 PACK = os.environ.get("POSTTRAIN_ENGINE_PACK", "1").strip().lower() not in ("0", "false", "no", "off")
 PACK_BATCH_HINT = 16  # rows the layout is tuned for (any row count works: decode shrinks, prefill is long)
 # Narrower models multiply plain: there the oneDNN call's fixed cost outweighs the repacking it saves (packed /
-# plain tokens/s by hidden size and batch: RESULTS.md, "Lean forwards" and "Figures once kept in code comments").
+# plain tokens/s by hidden size and batch: docs/results-archive.md, "Lean forwards" and "Figures once kept in
+# code comments").
 PACK_MIN_HIDDEN = 512
 _PACK_OK: dict = {}
 
@@ -210,7 +212,8 @@ class LeanLlama:
         """(Re)write the fused weights from `model`'s current parameters: each matrix is one strided multiply
         (RoPE row order, norm weight and softmax scale at once) into its buffer, in place, so refreshing after
         every optimizer step is cheap; packed, each is then reordered into oneDNN's layout (one more pass;
-        its cost: RESULTS.md, "Figures once kept in code comments") from a scratch matrix of its shape."""
+        its cost: docs/results-archive.md, "Figures once kept in code comments") from a scratch matrix of its
+        shape."""
         if hasattr(model, "get_base_model"):  # peft model: base + adapter deltas (`_weight`)
             model = model.get_base_model()
         base = model.model
@@ -491,7 +494,8 @@ class LeanLlama:
 
     def _attend(self, q, k, v, bias):
         """Prefill attention, q (U, H, Tq, D) already scaled, k/v (U, Hkv, Tk, D), bias (U, 1, Tq, Tk) additive.
-        Explicit matmuls: faster than CPU SDPA at these sizes (RESULTS.md); GQA by grouping q heads per kv head."""
+        Explicit matmuls: faster than CPU SDPA at these sizes (docs/results-archive.md, "Lean forwards"); GQA by
+        grouping q heads per kv head."""
         U, H, Tq, D = q.shape
         rep = self.rep
         q = q.reshape(U, self.Hkv, rep * Tq, D)

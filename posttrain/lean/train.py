@@ -19,7 +19,7 @@ the optimizer may change them freely between calls. What it runs: `lean_support(
 Why: at the `tiny` preset (d=128) the HF module-per-op structure costs as much as the matmuls (RoPE's
 cos/sin broadcasts and rotate_half, the mask rebuilt by `create_causal_mask`, the loss's (B, T, V)
 zero-fill + scatter in the backward). Implementation details, each measured alone and kept only when
-faster (figures in RESULTS.md):
+faster (figures in docs/results-archive.md, "Lean forwards"):
 - RoPE as one complex multiply (`support.rope_pair_order` / `rope_cis`): the q/k weight rows (and
   biases) are permuted to interleaved pairs by an `index_select` on the parameters every call
   (differentiable), the (N, D/2) factors computed once per call.
@@ -50,8 +50,8 @@ faster (figures in RESULTS.md):
   residual stream, the norms (their outputs cast to bf16) and RoPE stay fp32, the head's matmul is bf16 with
   its softmax, log-probs and gradients fp32 (the chunked head casts explicitly, forward and backward). fp16
   autocast falls back. On SmolLM2 with native bf16 a GRPO-like forward + backward is faster than lean fp32 and
-  than the HF forward under the same autocast (measured: RESULTS.md, "Lean forwards" and "Figures once kept in
-  code comments").
+  than the HF forward under the same autocast (measured: docs/results-archive.md, "Lean forwards" and
+  "Figures once kept in code comments").
 - Not kept: a vector_norm/hypot RMSNorm (as `LeanLlama`; barely faster, more rounding), explicit-matmul
   attention in fp32 (no faster than the kernel; its backward keeps the (B, H, T, T) probabilities), a flip-based
   rotate_half.
@@ -259,7 +259,8 @@ def lean_logits(model, x: torch.Tensor, temperature: float = 1.0) -> torch.Tenso
 
 # Keys per query up to which bf16 attention on a CPU runs as explicit matmuls (`_sdpa`) instead of
 # F.scaled_dot_product_attention, whose CPU flash kernel in bf16 is 2-3x slower forward + backward at these
-# lengths (SmolLM2 shapes, Zen 4: RESULTS.md, "Training at the matrix units' speed"); past it the kernel wins.
+# lengths (SmolLM2 shapes, Zen 4: docs/results-archive.md, "Training at the matrix units' speed"); past it the
+# kernel wins.
 EXPLICIT_ATTENTION_MAX_KEYS = 256
 
 

@@ -16,7 +16,7 @@ Example (JSON-serialisable):
 
 Choices (a tiny model SFT'd on the verifier generator's full difficulty-1 problems, golds of two
 operations written out one per line, solved none of its samples, so RL had nothing to reinforce;
-RESULTS.md, "Recipes / tiny-countdown"):
+docs/results-archive.md, "Recipes / tiny-countdown"):
 - Three numbers, a target made from exactly TWO of them with one operation (+, -, *, / with an
   exact integer result; operator drawn uniformly, the problem redrawn unless the target is in
   10..100 and not itself one of the numbers): the third number is a distractor. A solution is a choice

@@ -27,7 +27,7 @@ Worked solutions (the SFT targets) -- why they look like this
 A ~1M-parameter Llama trained from scratch on a CPU learns arithmetic only when every
 generated token is easy to compute from a few tokens before it (such a model trained on plain two-digit
 addition with the answer written directly stays near chance, while this format learns 2-3 step problems;
-measured: RESULTS.md, "Figures once kept in code comments"). So a
+measured: docs/results-archive.md, "Figures once kept in code comments"). So a
 worked solution is:
 
      47+38-19
@@ -64,7 +64,7 @@ sample at a time (it gained little and collapsed at lr >= 1e-4). With the two st
 is past that transition (its worked answers are mostly right) and the room for RL is the style
 choice on one question in three. The SFT stage is therefore trained to convergence (2000 steps):
 stopping it early only adds the luck of the transition above, which moved with the torch thread
-count. The measurements behind each choice: RESULTS.md, "Recipes / tiny-math".
+count. The measurements behind each choice: docs/results-archive.md, "Recipes / tiny-math".
 
 Verification steps. With probability CHECK_PROB a worked training solution adds, before the answer,
 the inverse of its last operation: "Check: 66+19=85" (for a gain, "Check: 85-38=47"). It only
@@ -82,7 +82,7 @@ Splits (train and held-out differ)
 - Eval solutions are always worked and never contain a Check line (DIRECT_PROB and CHECK_PROB
   are train-only).
 Why no new words in the held-out set: on an SFT model, held-out problems with unseen names and
-items, an unseen opener or an unseen question scored far below training problems (RESULTS.md) --
+items, an unseen opener or an unseen question scored far below training problems (docs/results-archive.md) --
 the untrained embeddings of new words break the copying of the numbers. That tests vocabulary
 coverage of a model trained from scratch, not arithmetic, and RL on training prompts could not fix
 it; held-out numbers alone scored like training problems.

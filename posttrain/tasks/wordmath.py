@@ -28,11 +28,11 @@ reference is computed, never parsed back from text.
 
 The difficulty knob (`task.difficulty`, levels 1-3)
 ---------------------------------------------------
-Measured on SmolLM2-135M-Instruct before any training (RESULTS.md, "Recipes / smol-math"): a single
+Measured on SmolLM2-135M-Instruct before any training (docs/results-archive.md, "Recipes / smol-math"): a single
 addition of numbers up to 10 is right about a third of the time greedy, and the misses are mostly not
 arithmetic: the model states the right sum, then keeps writing ("... so he now has 7 - 5 = 2 pencils")
-and its last number is wrong; two steps drop it much lower (the figures: RESULTS.md, "Figures once kept in
-code comments"). So the levels are:
+and its last number is wrong; two steps drop it much lower (the figures: docs/results-archive.md, "Figures once kept
+in code comments"). So the levels are:
 
     level  operations  +/- operands (train / held-out)  factors, divisors (train / held-out)
     1      1           1-20  / 1-30                      2-9  / 2-12

@@ -294,9 +294,9 @@ def train(res: Resolved, ensure) -> Path:
 # ----------------------------------------------------------------------------- setup and the end of a run
 def sample_seed(seed: int, it: int) -> int:
     """The sampling stream of iteration `it`, kept at its value from before `loop.stream_seed` (as PPO's epoch
-    shuffles, detail 18): the learning tests' bounds were measured on these samples (RESULTS.md, "Test margins"),
-    and under a renamed stream test_ppo_learns_a_hand_made_reward falls below its bound at seeds 0 and 3. Rename
-    it (loop.stream_seed(seed, "ppo/sample", it)) together with a new measurement of those margins."""
+    shuffles, detail 18): the learning tests' bounds were measured on these samples (docs/results-archive.md,
+    "Test margins"), and under a renamed stream test_ppo_learns_a_hand_made_reward falls below its bound at seeds
+    0 and 3. Rename it (loop.stream_seed(seed, "ppo/sample", it)) together with a new measurement of those margins."""
     return seed * 100_003 + it
 
 

@@ -4,7 +4,7 @@
 docstring): the trainers put their model on `Accelerator.device`, which reports the virtual device inside the
 guard, and an op that mixes a device tensor with a host tensor raises as CUDA does. On 880b27d the SFT step
 raised here exactly where it crashed on an H200 (`nll_sum`: `logps * weights`, the weights built on the host);
-RESULTS.md ("Device placement") lists what each stage hit.
+docs/results-archive.md ("Device placement") lists what each stage hit.
 
 Each stage runs one or two steps through the CLI in one process (the guard is a torch function mode of this
 process), chained in one run directory: sft -> prefs -> rm -> dpo (sigmoid, kto, ipo) -> ppo, eval, distill,

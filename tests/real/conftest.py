@@ -17,7 +17,7 @@ NAME = "smollm2-135m-instruct"
 # Bytes. The suite's peak on disk with this tier in it, sampled every 0.2 s through `.ci/run` on 2026-12-05: 5.5 GiB
 # above the start (the import, 0.54 GB; the chain's SFT and RM models; PPO's end checkpoint, policy and value model
 # each with two Adam moments, 3.2 GB, and its final/), 7.4 GiB before passed tests' checkpoints and weights were
-# dropped (tests/conftest.py); RESULTS.md, "Disk".
+# dropped (tests/conftest.py); docs/results-archive.md, "Disk".
 NEED_DISK = 8 * 2**30
 # Bytes free before each test of the tier: the most one test writes at once (PPO's 3.2 GB checkpoint and its
 # 0.54 GB final/) with room for the other worker. A disk that other work fills meanwhile skips the rest, named.

@@ -15,7 +15,8 @@ and the episode ended with an answer turn; else 0.0. Known hacks and why they sc
 - an empty answer.
 `digit_credit` (an env option, default 0): a wrong answer of the right length scores `digit_credit` times the
 share of its digits in place (always below 1, so accuracy, the share of rewards of 1, stays exact); a denser signal
-for GRPO on copying a long result (RESULTS.md, tiny-calc: it did not lift accuracy there).
+for GRPO on copying a long result (docs/results-archive.md, tiny-calc first runs: it did not lift
+accuracy there).
 Per-turn reward: none (`turn_reward` returns None).
 """
 from __future__ import annotations

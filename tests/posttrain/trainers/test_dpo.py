@@ -313,7 +313,8 @@ def test_the_recipe_chain_from_nothing(tmp_path, capsys, learning):
     # DPO fits the pairs it trains on: the implicit-reward accuracy of the batch at the last step (its pool drawn
     # 10 steps before) is 0.875-0.94 over seeds 0-3 (0 at step 0, where every margin is 0). What this small chain
     # does NOT show reliably is a gain on the task: its gold win-rate against SFT is 0.49-0.57 over seeds 0-3 and
-    # 0.45-0.53 with 40 DPO steps, and the length-band metrics swing around zero (RESULTS.md, "Test margins").
+    # 0.45-0.53 with 40 DPO steps, and the length-band metrics swing around zero (RESULTS.md and
+    # docs/results-archive.md, "Test margins").
     rows = [json.loads(line) for line in (out / "chain" / "dpo" / "metrics.jsonl").read_text().splitlines()]
     train = [r for r in rows if "rewards/accuracy" in r]
     learning.above("training implicit-reward accuracy at the last step", train[-1]["rewards/accuracy"], 0.7,
@@ -380,7 +381,8 @@ def test_kto_learns_from_unpaired_rows(world, tmp_path, write_jsonl, capsys, lea
     assert ev[0]["eval/loss"] == pytest.approx(0.5, abs=1e-5) and ev[0]["eval/kl"] == 0.0
     acc = [r["eval/rewards/accuracy"] for r in ev]
     margin = [r["eval/rewards/margin"] for r in ev]
-    # measured at seeds 0-3 x 1 and 2 threads: final accuracy 0.75-0.81, margin rise 2.76-3.08 (RESULTS.md)
+    # measured at seeds 0-3 x 1 and 2 threads: final accuracy 0.75-0.81, margin rise 2.76-3.08
+    # (docs/results-archive.md, "Test margins")
     learning.above("kto: final held-out accuracy (rows on the right side of z0)", acc[-1], 0.65, acc)
     learning.above("kto: held-out reward margin (desirable - undesirable), last - first", margin[-1] - margin[0],
                    1.5, margin)

@@ -477,8 +477,8 @@ def test_lora_grpo_learns_with_the_reference_as_adapters_off(sft_model, tmp_path
     The model: the random tiny model with its final norm weight set to 4, as in test_ppo's LoRA test. Adapters on
     the transformer layers cannot touch the embeddings or the final norm, and with the HF init no hidden state
     gives any token much probability, so on the plain random model the reward barely moved (+0.07 and +0.10 at
-    seeds 0 and 1: the 0.1 bound failed at seed 1; RESULTS.md, "Test margins"). x4 gives the output layer the
-    range of a trained model."""
+    seeds 0 and 1: the 0.1 bound failed at seed 1; docs/results-archive.md, "Test margins"). x4 gives the output
+    layer the range of a trained model."""
     import posttrain.models as models
 
     out = tmp_path / "lora"

@@ -61,7 +61,7 @@ def test_episodes_train_end_to_end_with_the_trainers_log_probs_equal_to_the_samp
 @pytest.mark.learning
 def test_grpo_learns_the_environments_reward(chat_sft, tmp_path, learning):
     """Turns: reward 1 for two or more turns, i.e. for ending a turn at eos within 12 tokens; a random model does so
-    rarely. Margin over seeds and thread counts: scripts/test_margins.py (RESULTS.md, "Test margins")."""
+    rarely. Margin over seeds and thread counts: scripts/test_margins.py (docs/results-archive.md, "Test margins")."""
     out = tmp_path / "learn"
     assert main(_args(chat_sft, out, "max_steps=10", "prompts_per_step=8", "group_size=8", "lr=1e-3",
                       "log_every=1", *learning.overrides)) == 0

@@ -486,7 +486,7 @@ def test_lora_ppo_learns_with_no_reference_copy_and_saves_a_merged_model(world, 
     # 0.0, 0.0, 0.0 then 0.84 at the last of 12) while the run as a whole has learned to end its completions.
     # lr 5e-3, not 1e-2: at 1e-2 some seeds stay stuck at no_eos ~1 for 8+ iterations (seed 2: score -0.78 until
     # iteration 8, last - first 0.08); at 5e-3 every seed 0-3 x threads 1, 2 learns (worst last - first 0.88,
-    # worst no_eos 0.016: RESULTS.md, "Test margins").
+    # worst no_eos 0.016: docs/results-archive.md, "Test margins").
     late = sorted(r["rollout/no_eos"] for r in m[-4:])
     learning.below("completions without EOS (median of the last 4 iterations)", (late[1] + late[2]) / 2, 0.3,
                    [r["rollout/no_eos"] for r in m])
