@@ -19,10 +19,16 @@ the chat-template `tools=` convention, never written by hand) and the assistant 
     <tool_call>{"name": "calculator", "arguments": {"expression": "12*34"}}</tool_call>
 
 A result comes back as a message with the `tool` role, whose content is the tool's return value, or
-`error: ...` naming what went wrong: a malformed call (not JSON, no name, arguments not an object), an unknown
-tool, bad arguments (the function's signature refuses them), an exception in the tool, or a timeout. Such errors
-are counted in the metrics and never stop a step. An assistant turn with no call ends the episode: its text is the
-final answer (`Episode.final_text`).
+`error: ...` naming what went wrong: a malformed call (not JSON, no name, arguments not an object, or past the
+parser's limits below), an unknown tool, bad arguments (the function's signature refuses them), an exception in the
+tool, or a timeout. Such errors are counted in the metrics and never stop a step. An assistant turn with no call ends
+the episode: its text is the final answer (`Episode.final_text`).
+
+No text raises out of `parse_tool_calls`, and its time is linear in the text's length. A call is malformed, with a
+one-line reason, when its JSON is longer than `MAX_CALL_CHARS` characters, nests brackets deeper than
+`MAX_CALL_DEPTH` levels (json.loads would raise RecursionError), holds an integer of more than
+`MAX_NUMBER_DIGITS` digits (Python refuses int() past 4300 digits), or a string with an unpaired surrogate escape
+such as "\\ud800" (no tokenizer or UTF-8 file takes it).
 
 Limits (`Limits`): assistant turns per episode, sampled tokens per turn, tokens in all (sampled and environment,
 after the prompt), tool calls per turn, seconds per tool call.
@@ -35,7 +41,11 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
-TOOL_CALL_RE = re.compile(r"<tool_call>(.*?)</tool_call>", re.DOTALL)
+CALL_OPEN, CALL_CLOSE = "<tool_call>", "</tool_call>"
+MAX_CALL_CHARS = 100_000  # a call's JSON text (the python tool takes code up to 20,000 characters)
+MAX_CALL_DEPTH = 100  # brackets nested in a call's JSON (json.loads and json.dumps recurse per level)
+MAX_NUMBER_DIGITS = 1000  # digits of an integer in a call's JSON (json.dumps of the episode refuses more than 4300)
+_JSON_TOKENS = re.compile(r'\\.|["\[\]{}]', re.DOTALL)  # an escape, a quote or a bracket
 ERROR_KINDS = ("malformed", "unknown_tool", "bad_arguments", "exception", "timeout", "too_many_calls")
 
 
@@ -119,16 +129,25 @@ class Episode:
                           for t in self.turns]}
 
 
+class _Refused(ValueError):
+    """JSON that the parser refuses as a tool call although it may be JSON: past a limit, or an unpaired surrogate
+    (the message says which)."""
+
+
 def parse_tool_calls(text: str) -> list[ToolCall]:
     """The calls in an assistant turn, in the default format `<tool_call>{"name": ..., "arguments": {...}}
     </tool_call>`. A block that is not such an object is a call with `error` set (it is answered with the error,
-    so the model sees what was wrong). An unclosed `<tool_call>` is a malformed call too."""
+    so the model sees what was wrong). An unclosed `<tool_call>` is a malformed call too, and so is a call past the
+    parser's limits (module docstring; its `raw` cut to 200 characters, as an unclosed tag's); no text raises here."""
     calls = []
-    for m in TOOL_CALL_RE.finditer(text):
-        raw = m.group(0)
-        body = m.group(1).strip()
+    blocks, tail = _split_calls(text)
+    for raw, body in blocks:
+        body = body.strip()
         try:
-            obj = json.loads(body)
+            obj = _loads(body)
+        except _Refused as e:
+            calls.append(ToolCall(None, None, raw[:200], f"malformed: {e}"))
+            continue
         except json.JSONDecodeError as e:
             calls.append(ToolCall(None, None, raw, f"malformed: not JSON ({e.msg} at character {e.pos})"))
             continue
@@ -138,18 +157,79 @@ def parse_tool_calls(text: str) -> list[ToolCall]:
         args = obj.get("arguments", {})
         if isinstance(args, str):  # some models write the arguments as a JSON string
             try:
-                args = json.loads(args)
+                args = _loads(args)
+            except _Refused as e:
+                calls.append(ToolCall(obj["name"], None, raw[:200], f"malformed: {e}"))
+                continue
             except json.JSONDecodeError:
                 pass
         if not isinstance(args, dict):
             calls.append(ToolCall(obj["name"], None, raw, "malformed: 'arguments' must be an object"))
             continue
         calls.append(ToolCall(obj["name"].strip(), args, raw))
-    tail = TOOL_CALL_RE.sub("", text)
-    if "<tool_call>" in tail:
-        calls.append(ToolCall(None, None, tail[tail.index("<tool_call>"):][:200],
+    if CALL_OPEN in tail:
+        calls.append(ToolCall(None, None, tail[tail.index(CALL_OPEN):][:200],
                               "malformed: <tool_call> without </tool_call>"))
     return calls
+
+
+def _split_calls(text: str) -> tuple[list[tuple[str, str]], str]:
+    """The `<tool_call>...</tool_call>` blocks of `text` as (raw, body) pairs, and the text outside them joined. A
+    block runs from an opening tag to the first closing tag after it (what the regex `<tool_call>(.*?)</tool_call>`
+    matches); found with str.find, because that regex takes quadratic time on a text of many unclosed tags."""
+    blocks, outside, i = [], [], 0
+    while True:
+        start = text.find(CALL_OPEN, i)
+        end = text.find(CALL_CLOSE, start + len(CALL_OPEN)) if start >= 0 else -1
+        if end < 0:
+            outside.append(text[i:])
+            return blocks, "".join(outside)
+        outside.append(text[i:start])
+        blocks.append((text[start:end + len(CALL_CLOSE)], text[start + len(CALL_OPEN):end]))
+        i = end + len(CALL_CLOSE)
+
+
+def _loads(body: str) -> Any:
+    """`json.loads(body)` within the parser's limits: json.JSONDecodeError for text that is not JSON, _Refused for
+    JSON past a limit or with an unpaired surrogate (module docstring). The limits are checked before or while
+    decoding, so no input makes json.loads recurse past `MAX_CALL_DEPTH` or convert a huge integer."""
+    if len(body) > MAX_CALL_CHARS:
+        raise _Refused(f"tool call longer than {MAX_CALL_CHARS} characters ({len(body)})")
+    if body.count("[") + body.count("{") > MAX_CALL_DEPTH and _nesting(body) > MAX_CALL_DEPTH:
+        raise _Refused(f"tool call nested deeper than {MAX_CALL_DEPTH} levels")
+    obj = json.loads(body, parse_int=_integer)
+    try:
+        json.dumps(obj, ensure_ascii=False).encode("utf-8")
+    except UnicodeEncodeError:
+        raise _Refused("tool call holds an unpaired surrogate (an escape such as \\ud800 alone); write the "
+                       "character itself") from None
+    return obj
+
+
+def _nesting(body: str) -> int:
+    """How deep `[` and `{` nest outside JSON strings in `body`: a JSON text's depth; for other text, at least the
+    depth json.loads reaches before it fails (it never reads past the first error)."""
+    depth = deepest = 0
+    in_string = False
+    for m in _JSON_TOKENS.finditer(body):
+        token = m.group()
+        if token == '"':
+            in_string = not in_string
+        elif in_string or len(token) == 2:  # a bracket inside a string, or an escape
+            continue
+        elif token in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        else:
+            depth -= 1
+    return deepest
+
+
+def _integer(literal: str) -> int:
+    """An integer literal of a call's JSON (json.loads' parse_int), refused past `MAX_NUMBER_DIGITS` digits."""
+    if len(literal) > MAX_NUMBER_DIGITS + literal.startswith("-"):
+        raise _Refused(f"tool call holds a number of more than {MAX_NUMBER_DIGITS} digits")
+    return int(literal)
 
 
 def format_tool_call(name: str, arguments: dict[str, Any]) -> str:

@@ -6,7 +6,9 @@
     results = pending.poll()                                       # None until every call is answered
     runner.close()
 
-Every call ends as a `ToolResult` within its limit, never as an exception:
+Every call ends as a `ToolResult` within its limit, never as an exception, and its content is text any tokenizer
+takes (at most `MAX_CONTENT_CHARS` characters, plus a truncation marker; an unpaired surrogate, which a sandboxed
+program may print, is written as its escape `\\ud800`):
 - a call the parser marked malformed, an unknown tool, arguments the function's signature refuses, and calls past
   `limits.max_calls_per_turn` are answered at once, without running anything;
 - an exception in the tool is `error: ExceptionType: message` (kind "exception");
@@ -28,7 +30,10 @@ MAX_CONTENT_CHARS = 4000  # a tool's return value is cut to this many characters
 
 
 def _text(value: Any) -> str:
+    """What the model sees of `value` (a tool's return value or an error message): cut to MAX_CONTENT_CHARS, each
+    unpaired surrogate written as its escape (a tokenizer refuses the character, and so does a UTF-8 file)."""
     text = value if isinstance(value, str) else repr(value)
+    text = text.encode("utf-8", "backslashreplace").decode("utf-8")
     if len(text) > MAX_CONTENT_CHARS:
         text = text[:MAX_CONTENT_CHARS] + f"...[truncated {len(text) - MAX_CONTENT_CHARS} characters]"
     return text
@@ -40,20 +45,20 @@ def _run(fn: Callable, call: ToolCall) -> ToolResult:
         out = fn(**call.arguments)
     except Exception as e:  # the model's arguments broke the tool: the model is told, the step goes on
         msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        return ToolResult(call, f"error: {type(e).__name__}: {msg}"[:500], "exception", time.perf_counter() - t)
+        return ToolResult(call, _text(f"error: {type(e).__name__}: {msg}"[:500]), "exception", time.perf_counter() - t)
     return ToolResult(call, _text(out), None, time.perf_counter() - t)
 
 
 def immediate_result(call: ToolCall, tools: dict[str, Callable]) -> ToolResult | None:
     """The answer to a call that must not run (malformed, unknown tool, bad arguments), or None."""
     if call.error:
-        return ToolResult(call, f"error: {call.error}", "malformed")
+        return ToolResult(call, _text(f"error: {call.error}"), "malformed")
     if call.name not in tools:
         names = ", ".join(sorted(tools)) or "none"
-        return ToolResult(call, f"error: unknown tool {call.name!r}; the tools are: {names}", "unknown_tool")
+        return ToolResult(call, _text(f"error: unknown tool {call.name!r}; the tools are: {names}"), "unknown_tool")
     why = check_arguments(tools[call.name], call.arguments or {})
     if why:
-        return ToolResult(call, f"error: bad arguments for {call.name}: {why}", "bad_arguments")
+        return ToolResult(call, _text(f"error: bad arguments for {call.name}: {why}"), "bad_arguments")
     return None
 
 
