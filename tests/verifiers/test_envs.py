@@ -152,3 +152,10 @@ def test_the_registry_finds_built_ins_files_and_says_what_is_wrong(tmp_path):
         get_env("calc", max_turns=0)
     with pytest.raises(ValueError, match="unexpected keyword argument 'colour'"):
         get_env("calc", colour=1)
+
+
+def test_calc_scores_an_endless_integer_zero_with_its_reason():
+    env = CalcEnv()
+    problem = {"prompt": "What is 347 * 582?", "answer": "201954"}
+    assert env.score(problem, "The answer is " + "9" * 5000) == (0.0, "an integer of more than 1000 digits")
+    assert last_integer("x " + "1" * 1000) == (int("1" * 1000), 1) and last_integer("no digits") == (None, 0)

@@ -42,12 +42,17 @@ def calculator(expression: str) -> str:
 INTEGER = re.compile(r"-?\d{1,3}(?:[, ]\d{3})+(?!\d)|-?\d+")
 
 
+MAX_ANSWER_DIGITS = 1000  # a longer last integer is no answer (and Python's int() refuses more than 4300 digits)
+
+
 def last_integer(text: str) -> tuple[int | None, int]:
-    """The last integer in `text` (digit groups "201,954" / "201 954" read as one) and how many integers it has."""
+    """The last integer in `text` (digit groups "201,954" / "201 954" read as one) and how many integers it has;
+    None for the integer when there is none, or when it has more than MAX_ANSWER_DIGITS digits."""
     found = INTEGER.findall(text)
     if not found:
         return None, 0
-    return int(re.sub(r"[, ]", "", found[-1])), len(found)
+    digits = re.sub(r"[, ]", "", found[-1])
+    return (int(digits) if len(digits.lstrip("-")) <= MAX_ANSWER_DIGITS else None), len(found)
 
 
 class CalcEnv(Environment):
@@ -95,7 +100,7 @@ class CalcEnv(Environment):
             return 0.0, "copies a tool message"
         value, count = last_integer(answer)
         if value is None:
-            return 0.0, "no integer"
+            return 0.0, "no integer" if count == 0 else f"an integer of more than {MAX_ANSWER_DIGITS} digits"
         if count > self.max_numbers:
             return 0.0, f"more than {self.max_numbers} integers"
         want = str(problem["answer"]).strip()
